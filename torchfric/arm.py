@@ -1,0 +1,293 @@
+"""The grey-box arm: ``M q̈ = c_m u − b q̇ − C(q̇; θ) − d(q)``, state ``x = [q, q̇]``.
+
+`ArmModel` owns the white-box parameters (inertia M, viscous b, optional offset and gravity
+terms, optionally c_m) and a black-box `Friction` module. All its estimable parameters form one
+flat vector θ in *estimation coordinates* (log for positive parameters when `log_positive`);
+`vector_field(x, u, theta)` is a pure function of that vector, which is what the EKF augments
+and what `torch.func` differentiates. The same field serves simulation and output-error training
+(with `theta=None` it uses the module's own, differentiable parameters).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .errors import TorchfricError
+from .friction import Friction, make_friction
+
+__all__ = ["ArmModel"]
+
+
+class ArmModel(nn.Module):
+    """Rotating arm (or linear axis) with friction.
+
+    ``d/dt [q, q̇] = [q̇, (c_m u − b q̇ − C(q̇) − offset − g_c sin q) / M]``
+
+    Args:
+        friction: the black-box friction `C(v)`.
+        inertia: M > 0 (kg m² for an arm, kg for a linear axis).
+        viscous: b >= 0, or ``None`` to leave the viscous term out (the polytopic model carries its
+            own slopes, paper §3.2); ``None`` removes b from θ.
+        c_m: motor constant (input → torque); known unless `estimate_c_m`.
+        offset: constant torque/force offset (EMPS has −3.2 N); ``None`` = off (not in θ).
+        gravity: ``g_c = m g l`` of an unbalanced arm, torque ``g_c sin q``; ``None`` = off.
+        estimate_c_m: put c_m in θ (log space when `log_positive`).
+        log_positive: store M, b, g_c, c_m as logarithms in θ so estimators cannot make them negative.
+
+    θ order: friction parameters (the friction's own order), then b, M, offset, gravity, c_m —
+    the paper's ``θ = [W1ᵀ W2 b M]ᵀ`` for the tanh model.
+    """
+
+    def __init__(
+        self,
+        friction: Friction,
+        inertia: float = 0.03,
+        viscous: float | None = 0.01,
+        c_m: float = 1.0,
+        *,
+        offset: float | None = None,
+        gravity: float | None = None,
+        estimate_c_m: bool = False,
+        log_positive: bool = True,
+    ) -> None:
+        super().__init__()
+        if not isinstance(friction, Friction):
+            raise TorchfricError(
+                f"friction must be a torchfric Friction module, got {type(friction).__name__}"
+            )
+        self.friction = friction
+        self.log_positive = bool(log_positive)
+        self.estimate_c_m = bool(estimate_c_m)
+        # Arm parameters: (name, positive) in θ order after the friction block.
+        self._arm_spec: list[tuple[str, bool]] = []
+        if viscous is not None:
+            self._add("viscous", viscous, positive=True, allow_zero=not self.log_positive)
+        self._add("inertia", inertia, positive=True)
+        if offset is not None:
+            self._add("offset", offset, positive=False)
+        if gravity is not None:
+            self._add("gravity", gravity, positive=True)
+        if estimate_c_m:
+            self._add("c_m", c_m, positive=True)
+        else:
+            self._check_value("c_m", c_m, positive=True)
+            self.register_buffer("c_m_fixed", torch.tensor(float(c_m), dtype=torch.float64))
+        self._k_friction = friction.num_parameters
+
+    # -- construction helpers ----------------------------------------------------------------
+    @staticmethod
+    def _check_value(name: str, value: Any, *, positive: bool, allow_zero: bool = False) -> float:
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise TorchfricError(f"{name} must be a number, got {value!r}") from None
+        if not torch.isfinite(torch.tensor(v)):
+            raise TorchfricError(f"{name} must be finite, got {value!r}")
+        if positive and (v < 0 or (v == 0 and not allow_zero)):
+            raise TorchfricError(
+                f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {value!r}"
+                + (
+                    "; with log_positive a zero value cannot be represented: give a small positive"
+                    " guess or set viscous to None"
+                    if name == "viscous" and v == 0
+                    else ""
+                )
+            )
+        return v
+
+    def _add(self, name: str, value: Any, *, positive: bool, allow_zero: bool = False) -> None:
+        v = self._check_value(name, value, positive=positive, allow_zero=allow_zero)
+        t = torch.tensor(v, dtype=torch.float64)
+        raw = t.log() if (positive and self.log_positive) else t
+        self.register_parameter(f"raw_{name}", nn.Parameter(raw.reshape(1)))
+        self._arm_spec.append((name, positive))
+
+    # -- the flat parameter vector -------------------------------------------------------------
+    @property
+    def theta_names(self) -> list[str]:
+        """Names of θ's entries, physical meaning (e.g. ``W1[1]``, ``viscous``, ``inertia``)."""
+        return self.friction.element_names + [name for name, _ in self._arm_spec]
+
+    @property
+    def num_parameters(self) -> int:
+        return self._k_friction + len(self._arm_spec)
+
+    def log_mask(self) -> Tensor:
+        """`(k,)` bool: entries of θ stored as logarithms."""
+        arm = [positive and self.log_positive for _, positive in self._arm_spec]
+        return torch.cat([self.friction.positive_mask(), torch.tensor(arm, dtype=torch.bool)])
+
+    def theta_vector(self) -> Tensor:
+        """`(k,)` θ in estimation coordinates, differentiable w.r.t. the module's parameters."""
+        return torch.cat(
+            [self.friction.raw_vector()] + [getattr(self, f"raw_{n}") for n, _ in self._arm_spec]
+        )
+
+    def get_theta(self) -> Tensor:
+        """`(k,)` a detached copy of θ in estimation coordinates."""
+        return self.theta_vector().detach().clone()
+
+    @torch.no_grad()
+    def set_theta(self, theta: Tensor) -> ArmModel:
+        """Write θ `(k,)` (estimation coordinates) back into the module; returns self."""
+        theta = torch.as_tensor(theta, dtype=torch.float64).reshape(-1)
+        if theta.numel() != self.num_parameters:
+            raise TorchfricError(
+                f"theta has {theta.numel()} entries but this model has {self.num_parameters} "
+                f"({', '.join(self.theta_names)})"
+            )
+        i = 0
+        for name, size, _ in self.friction._spec:
+            p = getattr(self.friction, name)
+            p.copy_(theta[i : i + size].reshape(p.shape))
+            i += size
+        for name, _ in self._arm_spec:
+            getattr(self, f"raw_{name}").copy_(theta[i : i + 1])
+            i += 1
+        return self
+
+    def to_physical(self, theta: Tensor) -> Tensor:
+        """`(..., k)` θ in physical units (exp of the log-stored entries)."""
+        mask = self.log_mask()
+        return torch.where(mask, theta.exp(), theta)
+
+    def from_physical(self, values: Tensor) -> Tensor:
+        """Inverse of `to_physical`."""
+        mask = self.log_mask()
+        return torch.where(mask, values.clamp_min(1e-300).log(), values)
+
+    def split(self, theta: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """θ `(..., k)` → (friction parameters, arm parameters) as physical-valued dicts; a leading
+        batch of parameter sets broadcasts against a batch of states in `dynamics`."""
+        kf = self._k_friction
+        fric = self.friction.split(theta[..., :kf])
+        arm: dict[str, Tensor] = {}
+        for j, (name, positive) in enumerate(self._arm_spec):
+            r = theta[..., kf + j]
+            arm[name] = r.exp() if (positive and self.log_positive) else r
+        if not self.estimate_c_m:
+            arm["c_m"] = self.c_m_fixed
+        return fric, arm
+
+    # -- dynamics ------------------------------------------------------------------------------
+    def vector_field(self, x: Tensor, u: Tensor, theta: Tensor | None = None) -> Tensor:
+        """``f(x, u; θ)``: `x (..., 2)`, `u (...)` (broadcast), θ `(k,)` → `ẋ (..., 2)`.
+
+        ``q̈ = (c_m u − b q̇ − C(q̇) − offset − g_c sin q) / M``.
+        """
+        if theta is None:
+            theta = self.theta_vector()
+        return self.dynamics(x, u, *self.split(theta))
+
+    def dynamics(
+        self, x: Tensor, u: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]
+    ) -> Tensor:
+        """`vector_field` with θ already split into physical dicts (`split`): hoist the split out
+        of inner loops, where θ is constant."""
+        q, v = x[..., 0], x[..., 1]
+        torque = arm["c_m"] * u - self.friction.evaluate(v, fric)
+        if "viscous" in arm:
+            torque = torque - arm["viscous"] * v
+        if "offset" in arm:
+            torque = torque - arm["offset"]
+        if "gravity" in arm:
+            torque = torque - arm["gravity"] * torch.sin(q)
+        return torch.stack([v, torque / arm["inertia"]], dim=-1)
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        return self.vector_field(x, u)
+
+    def friction_torque(self, v: Tensor) -> Tensor:
+        """Total velocity-dependent friction ``b v + C(v) + offset`` at velocities `v` (any shape)."""
+        _, arm = self.split(self.theta_vector())
+        out = self.friction(v)
+        if "viscous" in arm:
+            out = out + arm["viscous"] * v
+        if "offset" in arm:
+            out = out + arm["offset"]
+        return out
+
+    def max_slope(self, v_max: float, n: int = 401) -> float:
+        """Largest ``|∂q̈/∂q̇|`` over ``|v| <= v_max`` [1/s]: the stiffness that limits explicit steps."""
+        v = torch.linspace(-v_max, v_max, n, dtype=torch.float64).requires_grad_(True)
+        with torch.enable_grad():
+            total = self.friction_torque(v).sum()
+            (g,) = torch.autograd.grad(total, v)
+        return float(g.abs().max() / self.inertia)
+
+    # -- physical values -------------------------------------------------------------------------
+    def _arm_value(self, name: str) -> Tensor:
+        _, arm = self.split(self.theta_vector())
+        return arm[name].reshape(()) if name in arm else torch.zeros((), dtype=torch.float64)
+
+    @property
+    def inertia(self) -> Tensor:
+        return self._arm_value("inertia")
+
+    @property
+    def viscous(self) -> Tensor:
+        return self._arm_value("viscous")
+
+    @property
+    def offset(self) -> Tensor:
+        return self._arm_value("offset")
+
+    @property
+    def gravity(self) -> Tensor:
+        return self._arm_value("gravity")
+
+    @property
+    def c_m(self) -> Tensor:
+        return self._arm_value("c_m")
+
+    def physical_parameters(self) -> dict[str, float]:
+        """Every estimable parameter by name, in physical units, as plain floats."""
+        values = self.to_physical(self.get_theta())
+        return {name: float(v) for name, v in zip(self.theta_names, values, strict=True)}
+
+    # -- (de)serialisation -----------------------------------------------------------------------
+    def spec(self) -> dict[str, Any]:
+        """Plain-type description that `from_spec` rebuilds the model from (values included)."""
+        fric = {k: v.detach().clone() for k, v in self.friction.physical_parameters().items()}
+        return {
+            "friction": {
+                "kind": self.friction.kind,
+                "size": self.friction.size or 1,
+                "kwargs": self.friction.init_kwargs(),
+                "values": {k: v.tolist() for k, v in fric.items()},
+            },
+            "arm": {name: float(self._arm_value(name).detach()) for name, _ in self._arm_spec},
+            "viscous_enabled": "viscous" in dict(self._arm_spec),
+            "c_m": float(self.c_m.detach()),
+            "estimate_c_m": self.estimate_c_m,
+            "log_positive": self.log_positive,
+        }
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any]) -> ArmModel:
+        f = spec["friction"]
+        values = {_FRICTION_ARG[f["kind"]].get(k, k.lower()): v for k, v in f["values"].items()}
+        friction = make_friction(f["kind"], int(f["size"]), **f["kwargs"], **values)
+        arm = spec["arm"]
+        return cls(
+            friction,
+            inertia=arm["inertia"],
+            viscous=arm.get("viscous") if spec["viscous_enabled"] else None,
+            c_m=spec["c_m"],
+            offset=arm.get("offset"),
+            gravity=arm.get("gravity"),
+            estimate_c_m=spec["estimate_c_m"],
+            log_positive=spec["log_positive"],
+        )
+
+
+# Parameter-name → constructor-argument name, per friction kind (for from_spec).
+_FRICTION_ARG: dict[str, dict[str, str]] = {
+    "tanh": {"W1": "w1", "W2": "w2"},
+    "polytopic": {"a": "a", "b": "b", "c": "c", "sigma": "sigma"},
+    "coulomb": {"Fc": "fc"},
+    "stribeck": {"Fc": "fc", "Fs": "fs", "vs": "vs"},
+}

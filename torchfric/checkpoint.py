@@ -1,0 +1,294 @@
+"""Checkpoints: self-describing dicts of tensors and plain types, written atomically.
+
+A checkpoint is what `build_checkpoint` returns, saved with `save_checkpoint`::
+
+    {"format": "torchfric-checkpoint", "format_version": 1, "torchfric_version": str,
+     "created": ISO-8601 str, "name": str, "config": Config.to_dict(),
+     "model": ArmModel.spec(), "theta": Tensor (k,) (estimation coordinates),
+     "theta_names": [str], "parameters": {name: float (physical)},
+     "estimator": {"method": str, "state": {...}}, "metrics": {...},
+     "data": {path or "rig:NAME": sha256 hex}, "complete": bool}
+
+It contains nothing but tensors, str, int, float, bool, None, lists, tuples and dicts, so it loads
+with ``torch.load(path, weights_only=True)`` — the only way torchfric reads one (`read_checkpoint`).
+Files that would need full unpickling, truncated or corrupt files, and checkpoints of a newer
+format are refused with a one-line `TorchfricError`.
+
+Writes go to a temporary file in the target folder, are flushed and fsync'ed, then renamed over
+the target (`os.replace`) and the folder is fsync'ed: a crash at any moment leaves either the
+previous checkpoint or the new one, never a broken file.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import os
+import pathlib
+import pickle
+import secrets
+import zipfile
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .arm import ArmModel
+from .errors import TorchfricError
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "build_checkpoint",
+    "save_checkpoint",
+    "read_checkpoint",
+    "load_checkpoint",
+    "sha256_file",
+]
+
+FORMAT = "torchfric-checkpoint"
+FORMAT_VERSION = 1
+"""Bump when the layout changes incompatibly; readers refuse newer versions."""
+
+_REQUIRED = ("model", "theta", "theta_names")
+_PLAIN = (str, int, float, bool, type(None))
+_ZIP_MAGIC = b"PK\x03\x04"
+
+
+def _torchfric_version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("torchfric")
+    except metadata.PackageNotFoundError:
+        import torchfric
+
+        return str(getattr(torchfric, "__version__", "unknown"))
+
+
+def sha256_file(path: str | os.PathLike[str]) -> str:
+    """SHA-256 hex digest of a file's bytes (the data fingerprints of a checkpoint)."""
+    digest = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as exc:
+        raise TorchfricError(f"cannot fingerprint {str(path)!r}: {exc.strerror}") from None
+    return digest.hexdigest()
+
+
+def _sanitise(value: Any, where: str) -> Any:
+    """`value` with tensors detached to compact CPU copies, numpy scalars made Python numbers and
+    tuples kept; anything else that is not a plain type raises (so weights_only can load it)."""
+    if isinstance(value, Tensor):
+        if value.layout != torch.strided or value.is_quantized:
+            raise TorchfricError(f"{where} is a {value.layout} tensor; store a dense tensor")
+        return value.detach().to("cpu", copy=True).contiguous()
+    if type(value) in _PLAIN:
+        return value
+    if isinstance(value, bool | int | float | str):  # subclasses (np.float64, IntEnum, …)
+        return _base(value)
+    if hasattr(value, "dtype") and hasattr(value, "item") and getattr(value, "shape", None) == ():
+        return _sanitise(value.item(), where)  # numpy / 0-d scalar types
+    if isinstance(value, Mapping):
+        out = {}
+        for k, v in value.items():
+            if type(k) not in (str, int):
+                raise TorchfricError(
+                    f"{where} has a key {k!r} of type {type(k).__name__}; use str keys"
+                )
+            out[k] = _sanitise(v, f"{where}[{k!r}]")
+        return out
+    if isinstance(value, list | tuple):
+        items = [_sanitise(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        return items if isinstance(value, list) else tuple(items)
+    raise TorchfricError(
+        f"{where} is a {type(value).__module__}.{type(value).__qualname__}; a checkpoint holds "
+        "only tensors, str, int, float, bool, None, lists, tuples and dicts (convert it, e.g. "
+        "float(x), torch.as_tensor(x), dataclasses.asdict(x))"
+    )
+
+
+def _base(value: bool | int | float | str) -> bool | int | float | str:
+    for base in (bool, int, float, str):
+        if isinstance(value, base):
+            return base(value)
+    raise AssertionError(value)  # unreachable: the caller checked the types
+
+
+def build_checkpoint(
+    model: ArmModel,
+    *,
+    config: Any,
+    estimator_state: Mapping[str, Any],
+    metrics: Mapping[str, Any],
+    data_fingerprints: Mapping[str, str],
+    name: str,
+    complete: bool,
+    method: str | None = None,
+) -> dict[str, Any]:
+    """The checkpoint dict of `model` (see the module docstring).
+
+    Args:
+        model: the model; its θ is stored exactly and its physical values by name.
+        config: a `torchfric.config.Config` or its `to_dict()`.
+        estimator_state: whatever the estimator needs to resume (e.g. ``P_theta``, the pass
+            index, the history as a list of dicts), tensors and plain types only.
+        metrics: e.g. ``{"inertia": …, "validation": {file: {"fit_q": …}}}``.
+        data_fingerprints: data path or ``"rig:NAME"`` → SHA-256 hex (`sha256_file`).
+        name: the run name.
+        complete: False for per-pass snapshots of a run in progress, True for the final model.
+        method: estimator name; default ``config["estimator"]["method"]``.
+    """
+    if not isinstance(model, ArmModel):
+        raise TorchfricError(f"model must be a torchfric ArmModel, got {type(model).__name__}")
+    cfg = config.to_dict() if hasattr(config, "to_dict") else config
+    if not isinstance(cfg, Mapping):
+        raise TorchfricError(f"config must be a Config or a dict, got {type(config).__name__}")
+    if method is None:
+        method = str(cfg.get("estimator", {}).get("method", "ekf"))
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "torchfric_version": _torchfric_version(),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "name": str(name),
+        "config": dict(cfg),
+        "model": model.spec(),
+        "theta": model.get_theta(),
+        "theta_names": list(model.theta_names),
+        "parameters": model.physical_parameters(),
+        "estimator": {"method": method, "state": dict(estimator_state)},
+        "metrics": dict(metrics),
+        "data": {str(k): str(v) for k, v in data_fingerprints.items()},
+        "complete": bool(complete),
+    }
+
+
+def _fsync_dir(folder: pathlib.Path) -> None:
+    if os.name != "posix":  # directories cannot be opened for fsync on Windows
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def save_checkpoint(path: str | os.PathLike[str], payload: Mapping[str, Any]) -> None:
+    """Write `payload` to `path` atomically (temp file, fsync, rename, fsync of the folder).
+
+    Parent folders are created. A payload value that is not a tensor or plain type is refused
+    before anything is written, so the file always loads with ``weights_only=True``.
+    """
+    if not isinstance(payload, Mapping):
+        raise TorchfricError(f"a checkpoint payload must be a dict, got {type(payload).__name__}")
+    clean = _sanitise(payload, "checkpoint")
+    target = pathlib.Path(path)
+    if target.is_dir():
+        raise TorchfricError(f"checkpoint path {str(target)!r} is a directory; give a file name")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise TorchfricError(
+            f"cannot create folder {str(target.parent)!r}: {exc.strerror}"
+        ) from None
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        # O_EXCL: never clobber someone else's file; 0o666 & ~umask like an ordinary file.
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        with os.fdopen(fd, "wb") as f:
+            torch.save(clean, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException as exc:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        if isinstance(exc, OSError):
+            raise TorchfricError(
+                f"cannot write checkpoint {str(target)!r}: {exc.strerror or exc}; the previous "
+                "file (if any) is unchanged"
+            ) from exc
+        raise
+    _fsync_dir(target.parent)
+
+
+def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The raw checkpoint dict, read with ``torch.load(weights_only=True)`` after checks."""
+    p = pathlib.Path(path)
+    if not p.is_file():
+        what = "is a directory" if p.is_dir() else "not found"
+        raise TorchfricError(
+            f"checkpoint {str(p)!r} {what} (working directory {os.getcwd()}); give the path of a "
+            ".pt file written by torchfric train"
+        )
+    with open(p, "rb") as f:
+        magic = f.read(4)
+    bad = f"{p} is truncated or not a torchfric checkpoint"
+    if magic != _ZIP_MAGIC:
+        raise TorchfricError(f"{bad} (not a PyTorch zip archive); re-create it with torchfric")
+    try:
+        with zipfile.ZipFile(p) as z:
+            broken = z.testzip()  # CRC of every member: catches flipped or missing bytes
+    except (zipfile.BadZipFile, OSError, EOFError) as exc:
+        raise TorchfricError(f"{bad} ({exc}); re-create it or use an earlier snapshot") from None
+    if broken is not None:
+        raise TorchfricError(f"{bad} (member {broken!r} fails its CRC check); it is corrupt")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise TorchfricError(
+            f"{p} contains arbitrary Python objects (not only tensors and plain types); torchfric "
+            "refuses to unpickle it because that could run code from the file"
+        ) from None
+    except Exception as exc:  # torch raises RuntimeError/EOFError/… for damaged archives
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise TorchfricError(f"{bad} ({first})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        found = (
+            f"format = {ckpt.get('format')!r}" if isinstance(ckpt, dict) else type(ckpt).__name__
+        )
+        raise TorchfricError(
+            f"{p} is not a torchfric checkpoint ({found}, expected format = {FORMAT!r}); "
+            "give a file written by torchfric train"
+        )
+    version = ckpt.get("format_version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise TorchfricError(f"{p} has an invalid format_version {version!r}; the file is damaged")
+    if version > FORMAT_VERSION:
+        raise TorchfricError(
+            f"{p} has checkpoint format {version}, written by a newer torchfric "
+            f"({ckpt.get('torchfric_version', '?')}); this one reads format <= {FORMAT_VERSION}: "
+            "upgrade torchfric"
+        )
+    missing = [k for k in _REQUIRED if k not in ckpt]
+    if missing:
+        raise TorchfricError(f"{p} lacks {', '.join(missing)}; the checkpoint is incomplete")
+    return ckpt
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> ArmModel:
+    """The `ArmModel` stored in a checkpoint, θ set exactly (physical values as identified)."""
+    ckpt = read_checkpoint(path)
+    try:
+        model = ArmModel.from_spec(ckpt["model"])
+    except TorchfricError:
+        raise
+    except (KeyError, TypeError, ValueError) as exc:
+        raise TorchfricError(f"{path}: the model description is damaged ({exc!r})") from None
+    names = list(ckpt["theta_names"])
+    if names != model.theta_names:
+        raise TorchfricError(
+            f"{path}: stored theta_names {names} do not match the model's {model.theta_names}; "
+            "the checkpoint is inconsistent"
+        )
+    theta = ckpt["theta"]
+    if not isinstance(theta, Tensor):
+        raise TorchfricError(f"{path}: theta is a {type(theta).__name__}, expected a tensor")
+    model.set_theta(theta.to(torch.float64))
+    return model

@@ -1,0 +1,22 @@
+"""The one exception users meet: a `ValueError` whose message names the problem and the fix."""
+
+from __future__ import annotations
+
+
+class TorchfricError(ValueError):
+    """Bad input, bad configuration or a failed estimation, explained in one line.
+
+    Subclasses `ValueError` so that callers that only know the standard library can still catch
+    it. The CLI prints `error: <message>` and exits with status 2 instead of a traceback.
+    """
+
+
+class DivergenceError(TorchfricError):
+    """The estimator diverged (NaN/inf, a non-PSD covariance, or θ left its box).
+
+    Carries the last good result so that nothing already estimated is lost.
+    """
+
+    def __init__(self, message: str, *, last_good: object = None) -> None:
+        super().__init__(message)
+        self.last_good = last_good

@@ -1,0 +1,344 @@
+"""Friction models C(v): odd in the velocity v and zero at v = 0 for *every* parameter value.
+
+Every model is an `nn.Module` that maps a velocity tensor of any shape to a torque tensor of the
+same shape. Parameters are stored in *estimation coordinates*: parameters that must stay
+positive (variances, Coulomb levels) are stored as their logarithm when `log_positive=True`, so
+that an unconstrained estimator (EKF, gradient descent) can never make them negative. The pure
+method `evaluate(v, params)` takes *physical* values; `forward(v)` evaluates the module's own.
+
+Models (registry name in brackets, as used by `model.friction` in a config):
+
+- `OddTanhFriction` ("tanh"): ``C(v) = W2ᵀ tanh(W1 v)``, no biases (Hensen et al. §3.1).
+- `PolytopicFriction` ("polytopic"): Gaussian-weighted local affine models with the mirrored-pair
+  construction of §3.2.
+- `CoulombFriction` ("coulomb"): ``C(v) = Fc tanh(v/ε)``; with the arm's viscous ``b`` this is
+  the Coulomb+viscous white-box baseline.
+- `StribeckFriction` ("stribeck"): ``C(v) = (Fc + (Fs − Fc) exp(−(v/vs)²)) tanh(v/ε)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor, nn
+
+from .errors import TorchfricError
+
+__all__ = [
+    "Friction",
+    "OddTanhFriction",
+    "PolytopicFriction",
+    "CoulombFriction",
+    "StribeckFriction",
+    "FRICTIONS",
+    "make_friction",
+]
+
+
+def _as_vector(value: Sequence[float] | Tensor | float, n: int, name: str) -> Tensor:
+    """Parameter initial value as a float64 vector `(n,)`, with a clear error on a size mismatch."""
+    t = torch.as_tensor(value, dtype=torch.float64).reshape(-1).clone()
+    if t.numel() == 1 and n != 1:
+        t = t.expand(n).clone()
+    if t.numel() != n:
+        raise TorchfricError(
+            f"{name} needs {n} values, got {t.numel()} ({value!r}); give a list of length {n}"
+        )
+    if not torch.isfinite(t).all():
+        raise TorchfricError(f"{name} must be finite, got {value!r}")
+    return t
+
+
+class Friction(nn.Module):
+    """Base class of odd friction models.
+
+    Subclasses declare their parameters with `_add(name, value, positive=...)` in the order
+    that the flat parameter vector uses, and implement `evaluate`.
+    """
+
+    kind: ClassVar[str] = ""
+
+    def __init__(self, *, log_positive: bool = True) -> None:
+        super().__init__()
+        self.log_positive = bool(log_positive)
+        # (name, size, positive) in flat-vector order.
+        self._spec: list[tuple[str, int, bool]] = []
+        # Element names in flat order, e.g. ["W1[1]", "W1[2]", ...]; set by subclasses via _add.
+        self._element_names: list[str] = []
+
+    # -- parameter bookkeeping ---------------------------------------------------------------
+    def _add(self, name: str, value: Tensor, *, positive: bool, labels: list[str]) -> None:
+        if positive:
+            if (value <= 0).any():
+                raise TorchfricError(
+                    f"{type(self).__name__}: {name} must be positive, got {value.tolist()}; "
+                    "give strictly positive values"
+                )
+            raw = value.log() if self.log_positive else value
+        else:
+            raw = value
+        self.register_parameter(name, nn.Parameter(raw.clone()))
+        self._spec.append((name, value.numel(), positive))
+        self._element_names.extend(labels)
+
+    @property
+    def element_names(self) -> list[str]:
+        """Names of the scalar parameters in flat-vector order (physical meaning, not log)."""
+        return list(self._element_names)
+
+    @property
+    def num_parameters(self) -> int:
+        return sum(size for _, size, _ in self._spec)
+
+    def positive_mask(self) -> Tensor:
+        """`(k,)` bool: which flat entries are stored in log space."""
+        out = []
+        for _, size, positive in self._spec:
+            out.extend([positive and self.log_positive] * size)
+        return torch.tensor(out, dtype=torch.bool)
+
+    def raw_vector(self) -> Tensor:
+        """`(k,)` the parameters in estimation coordinates (differentiable, not detached)."""
+        return torch.cat([getattr(self, name).reshape(-1) for name, _, _ in self._spec])
+
+    def split(self, raw: Tensor) -> dict[str, Tensor]:
+        """Physical parameter dict from raw vectors `(..., k)` in estimation coordinates
+        (a leading batch of parameter sets is allowed; `evaluate` broadcasts it against v)."""
+        out: dict[str, Tensor] = {}
+        i = 0
+        for name, size, positive in self._spec:
+            chunk = raw[..., i : i + size]
+            out[name] = chunk.exp() if (positive and self.log_positive) else chunk
+            i += size
+        return out
+
+    def physical_parameters(self) -> dict[str, Tensor]:
+        """The module's own parameters in physical units (differentiable)."""
+        return self.split(self.raw_vector())
+
+    def forward(self, v: Tensor) -> Tensor:
+        """`C(v)` for a velocity tensor of any shape, same shape out."""
+        return self.evaluate(v, self.physical_parameters())
+
+    def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:  # pragma: no cover
+        raise NotImplementedError
+
+    def init_kwargs(self) -> dict[str, Any]:
+        """Constructor arguments (besides the parameter values) that rebuild this module."""
+        return {"log_positive": self.log_positive}
+
+    @property
+    def size(self) -> int:
+        return 0
+
+    def extra_repr(self) -> str:
+        vals = {
+            k: [round(float(x), 6) for x in v.reshape(-1)]
+            for k, v in self.physical_parameters().items()
+        }
+        return ", ".join(f"{k}={v}" for k, v in vals.items())
+
+
+class OddTanhFriction(Friction):
+    """One-hidden-layer network without biases, ``C(v) = Σ_j W2_j tanh(W1_j v)`` (paper §3.1).
+
+    Odd and zero at zero for every (W1, W2) because tanh is odd and there are no biases.
+
+    Args:
+        n: number of hidden neurons (3 in the paper: 6 parameters).
+        w1, w2: initial weights `(n,)`. Defaults spread the slopes W1 logarithmically over
+            `[0.1, 30] / velocity_scale` (from an almost-viscous to a Coulomb-like neuron) and give
+            each neuron `torque_scale / n`.
+    """
+
+    kind = "tanh"
+
+    def __init__(
+        self,
+        n: int = 3,
+        *,
+        w1: Sequence[float] | Tensor | None = None,
+        w2: Sequence[float] | Tensor | None = None,
+        velocity_scale: float = 1.0,
+        torque_scale: float = 0.1,
+        log_positive: bool = True,
+    ) -> None:
+        super().__init__(log_positive=log_positive)
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise TorchfricError(f"OddTanhFriction needs n >= 1 neurons, got {n!r}")
+        self.n = n
+        if w1 is None:
+            w1 = torch.logspace(-1.0, math.log10(30.0), n, dtype=torch.float64) / velocity_scale
+        if w2 is None:
+            w2 = torch.full((n,), torque_scale / n, dtype=torch.float64)
+        self._add(
+            "W1", _as_vector(w1, n, "W1"), positive=False, labels=[f"W1[{j + 1}]" for j in range(n)]
+        )
+        self._add(
+            "W2", _as_vector(w2, n, "W2"), positive=False, labels=[f"W2[{j + 1}]" for j in range(n)]
+        )
+
+    @property
+    def size(self) -> int:
+        return self.n
+
+    def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        # C(v) = W2ᵀ tanh(W1 v), broadcast over any leading shape of v.
+        return (torch.tanh(v.unsqueeze(-1) * p["W1"]) * p["W2"]).sum(-1)
+
+
+class PolytopicFriction(Friction):
+    """Gaussian-weighted local affine friction models (paper §3.2), odd by construction.
+
+    ``C(v) = Σ_i w_i(v) (a_i (v − c_i) + b_i)``, ``w_i = ρ_i / Σ_j ρ_j``,
+    ``ρ_i = exp(−½ (v − c_i)² / σ_i)``. The centre model has ``c = 0, b = 0``; the other
+    ``n − 1`` come in mirrored pairs ``(c, −c)`` sharing variance σ and slope a, with offsets
+    ``(b, −b)``. For n = 3 the parameters are exactly a1, a2, b2, c2, σ1, σ2.
+
+    Args:
+        n: odd number of local models (>= 1).
+        a: slopes `(m+1,)` (centre first), b: offsets `(m,)`, c: centres `(m,)`,
+            sigma: variances `(m+1,)`, with m = (n−1)/2. Defaults place the pair centres evenly
+            over `(0, velocity_scale]`, variances so that neighbours overlap, offsets at
+            `torque_scale`.
+    """
+
+    kind = "polytopic"
+
+    def __init__(
+        self,
+        n: int = 3,
+        *,
+        a: Sequence[float] | Tensor | None = None,
+        b: Sequence[float] | Tensor | None = None,
+        c: Sequence[float] | Tensor | None = None,
+        sigma: Sequence[float] | Tensor | None = None,
+        velocity_scale: float = 1.0,
+        torque_scale: float = 0.1,
+        log_positive: bool = True,
+    ) -> None:
+        super().__init__(log_positive=log_positive)
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1 or n % 2 == 0:
+            raise TorchfricError(
+                f"PolytopicFriction needs an odd number of local models n >= 1 (1, 3, 5, ...), "
+                f"got {n!r}"
+            )
+        self.n = n
+        m = (n - 1) // 2
+        self.m = m
+        spacing = velocity_scale / max(m, 1)
+        if c is None:
+            c = torch.arange(1, m + 1, dtype=torch.float64) * spacing
+        if a is None:
+            a = torch.full((m + 1,), 0.1 * torque_scale / velocity_scale, dtype=torch.float64)
+        if b is None:
+            b = torch.full((m,), torque_scale, dtype=torch.float64)
+        if sigma is None:
+            sigma = torch.full((m + 1,), (0.5 * spacing) ** 2, dtype=torch.float64)
+        idx = range(2, m + 2)
+        self._add(
+            "a", _as_vector(a, m + 1, "a"), positive=False, labels=["a1", *[f"a{i}" for i in idx]]
+        )
+        self._add("b", _as_vector(b, m, "b"), positive=False, labels=[f"b{i}" for i in idx])
+        self._add("c", _as_vector(c, m, "c"), positive=False, labels=[f"c{i}" for i in idx])
+        self._add(
+            "sigma",
+            _as_vector(sigma, m + 1, "sigma"),
+            positive=True,
+            labels=["sigma1", *[f"sigma{i}" for i in idx]],
+        )
+
+    @property
+    def size(self) -> int:
+        return self.n
+
+    def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        a, b, c, s = p["a"], p["b"], p["c"], p["sigma"]
+        zero = torch.zeros_like(a[..., :1])
+        # Full local-model tables (..., n): centre model first, then the +c and mirrored −c halves.
+        centres = torch.cat([zero, c, -c], dim=-1)
+        slopes = torch.cat([a, a[..., 1:]], dim=-1)
+        offsets = torch.cat([zero, b, -b], dim=-1)
+        variances = torch.cat([s, s[..., 1:]], dim=-1)
+        d = v.unsqueeze(-1) - centres
+        # w_i = ρ_i / Σ ρ_j with log ρ_i = −½ (v − c_i)² / σ_i (softmax: stable far from all centres).
+        w = torch.softmax(-0.5 * d * d / variances, dim=-1)
+        return (w * (slopes * d + offsets)).sum(-1)
+
+
+class CoulombFriction(Friction):
+    """Smooth Coulomb friction ``C(v) = Fc tanh(v/ε)``; with the arm's ``b`` the classic baseline.
+
+    `eps` [velocity units] sets the width of the smooth sign and is fixed (not estimated).
+    """
+
+    kind = "coulomb"
+
+    def __init__(
+        self, n: int = 1, *, fc: float = 0.1, eps: float = 1e-2, log_positive: bool = True
+    ) -> None:
+        super().__init__(log_positive=log_positive)
+        if eps <= 0:
+            raise TorchfricError(f"CoulombFriction eps must be positive, got {eps!r}")
+        self.eps = float(eps)
+        self._add("Fc", _as_vector(fc, 1, "Fc"), positive=True, labels=["Fc"])
+
+    def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        return p["Fc"][..., 0] * torch.tanh(v / self.eps)
+
+    def init_kwargs(self) -> dict[str, Any]:
+        return {**super().init_kwargs(), "eps": self.eps}
+
+
+class StribeckFriction(Friction):
+    """Stribeck curve with smooth sign, ``C(v) = (Fc + (Fs − Fc) exp(−(v/vs)²)) tanh(v/ε)``.
+
+    Odd because the bracket is even in v and tanh is odd. Fc, Fs, vs are positive.
+    """
+
+    kind = "stribeck"
+
+    def __init__(
+        self,
+        n: int = 1,
+        *,
+        fc: float = 0.1,
+        fs: float = 0.15,
+        vs: float = 0.5,
+        eps: float = 1e-2,
+        log_positive: bool = True,
+    ) -> None:
+        super().__init__(log_positive=log_positive)
+        if eps <= 0:
+            raise TorchfricError(f"StribeckFriction eps must be positive, got {eps!r}")
+        self.eps = float(eps)
+        self._add("Fc", _as_vector(fc, 1, "Fc"), positive=True, labels=["Fc"])
+        self._add("Fs", _as_vector(fs, 1, "Fs"), positive=True, labels=["Fs"])
+        self._add("vs", _as_vector(vs, 1, "vs"), positive=True, labels=["vs"])
+
+    def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
+        fc, fs, vs = p["Fc"][..., 0], p["Fs"][..., 0], p["vs"][..., 0]
+        level = fc + (fs - fc) * torch.exp(-((v / vs) ** 2))
+        return level * torch.tanh(v / self.eps)
+
+    def init_kwargs(self) -> dict[str, Any]:
+        return {**super().init_kwargs(), "eps": self.eps}
+
+
+FRICTIONS: dict[str, type[Friction]] = {
+    cls.kind: cls for cls in (OddTanhFriction, PolytopicFriction, CoulombFriction, StribeckFriction)
+}
+
+
+def make_friction(kind: str, size: int = 3, **kwargs: Any) -> Friction:
+    """Build a friction model by registry name (`"tanh"`, `"polytopic"`, `"coulomb"`, `"stribeck"`)."""
+    try:
+        cls = FRICTIONS[kind]
+    except KeyError:
+        raise TorchfricError(
+            f"unknown friction model {kind!r}; choose one of {sorted(FRICTIONS)}"
+        ) from None
+    return cls(size, **kwargs)

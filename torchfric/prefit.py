@@ -1,0 +1,248 @@
+"""Data-driven initial θ: an inverse-dynamics least-squares pre-fit (equation error).
+
+``c_m u = M q̈ + b q̇ + C(q̇; θ) + offset + g_c sin q`` is fitted on zero-phase filtered velocity
+and acceleration (`data.zero_phase_derivative` / `zero_phase_acceleration`), as in the EMPS
+reference identification (IDIM-LS). Steps:
+
+1. A linear least-squares fit of the white-box skeleton ``M, b, F_c`` (Coulomb ``F_c sign q̇``)
+   plus the enabled offset/gravity terms gives the scales of inertia and friction.
+2. The friction module is initialised from those scales (velocity scale: the 95th percentile
+   of ``|q̇|``; torque scale: ``F_c``), then all of θ is refined by Levenberg–Marquardt on the
+   equation error, with the Jacobian from `torch.func.jacfwd` (θ in estimation coordinates, so
+   positive parameters stay positive). Several friction starts are tried; the best is kept.
+
+Stick phases (``|q̇|`` below a threshold) are left out: there the friction is a pre-sliding
+force, not a function of velocity, and the filtered acceleration is dominated by quantisation.
+The 3 filter settling times at each end of every experiment are left out too.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.func import jacfwd
+
+from .arm import ArmModel
+from .data import Experiment, zero_phase_acceleration, zero_phase_derivative
+from .errors import TorchfricError
+from .friction import make_friction
+
+__all__ = ["PrefitResult", "prefit"]
+
+
+@dataclass
+class PrefitResult:
+    """Outcome of `prefit`: the initialised model and fit diagnostics."""
+
+    model: ArmModel
+    rms_residual: float  # RMS equation error [torque units] on the used samples
+    relative_residual: float  # ‖residual‖ / ‖c_m u‖ on the used samples
+    samples: int  # samples used (moving, away from the ends)
+    iterations: int
+
+
+def _regression_data(
+    experiments: Sequence[Experiment], cutoff_hz: float, stick_fraction: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Stacked (q, q̇, q̈, u) of the moving samples of all experiments."""
+    qs, vs, accs, us = [], [], [], []
+    for exp in experiments:
+        edge = int(math.ceil(3.0 / (cutoff_hz * exp.dt)))
+        if exp.n <= 2 * edge + 10:
+            raise TorchfricError(
+                f"experiment {exp.name!r} has {exp.n} samples, too few for the pre-fit's "
+                f"{cutoff_hz:g} Hz zero-phase filter; use model.init = 'config'"
+            )
+        v = zero_phase_derivative(exp.q, exp.dt, cutoff_hz)
+        a = zero_phase_acceleration(exp.q, exp.dt, cutoff_hz)
+        sl = slice(edge, exp.n - edge)
+        qs.append(exp.q[sl])
+        vs.append(v[sl])
+        accs.append(a[sl])
+        us.append(exp.u[sl])
+    q, v, a, u = (torch.cat(x).to(torch.float64) for x in (qs, vs, accs, us))
+    v_max = float(v.abs().max())
+    if v_max == 0.0:
+        raise TorchfricError(
+            "the data never move (velocity is zero everywhere): the pre-fit needs an experiment "
+            "that excites the motion; use model.init = 'config'"
+        )
+    moving = v.abs() > stick_fraction * v_max
+    if int(moving.sum()) < 50:
+        raise TorchfricError(
+            f"only {int(moving.sum())} moving samples for the pre-fit; record a richer experiment "
+            "or use model.init = 'config'"
+        )
+    return q[moving], v[moving], a[moving], u[moving]
+
+
+def _linear_skeleton(
+    model: ArmModel, q: Tensor, v: Tensor, a: Tensor, u: Tensor
+) -> dict[str, float]:
+    """Least squares for c_m u = M a + b v + Fc sign(v) [+ offset] [+ g sin q]."""
+    c_m = float(model.c_m.detach())
+    names = ["inertia", "viscous", "coulomb"]
+    cols = [a, v, torch.sign(v)]
+    _, arm = model.split(model.get_theta())
+    if "offset" in arm:
+        names.append("offset")
+        cols.append(torch.ones_like(v))
+    if "gravity" in arm:
+        names.append("gravity")
+        cols.append(torch.sin(q))
+    A = torch.stack(cols, dim=1)
+    scale = A.abs().amax(0).clamp_min(1e-300)
+    sol = torch.linalg.lstsq(A / scale, (c_m * u).unsqueeze(1)).solution.squeeze(1) / scale
+    return dict(zip(names, sol.tolist(), strict=True))
+
+
+def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmModel]:
+    """Initial models for LM: friction shapes at the data's velocity and torque scales."""
+    fc = max(abs(lin["coulomb"]), 1e-3 * abs(lin["viscous"]) * v_scale, 1e-12)
+    M = lin["inertia"] if lin["inertia"] > 0 else float(model.inertia.detach())
+    b = lin["viscous"] if lin["viscous"] > 0 else 1e-3 * fc / v_scale
+    fr = model.friction
+    kind, size, kwargs = fr.kind, fr.size or 1, fr.init_kwargs()
+    variants: list[dict[str, object]] = []
+    if kind == "tanh":
+        # Slopes spread from "almost viscous" to "sharp Coulomb" at a few overall scales.
+        for lo, hi in ((0.3, 100.0), (1.0, 300.0), (0.1, 30.0)):
+            w1 = torch.logspace(math.log10(lo), math.log10(hi), size, dtype=torch.float64) / v_scale
+            variants.append({"w1": w1, "w2": torch.full((size,), fc / size, dtype=torch.float64)})
+    elif kind == "polytopic":
+        for spread in (1.0, 0.5):
+            variants.append({"velocity_scale": spread * v_scale, "torque_scale": fc})
+    elif kind == "coulomb":
+        variants.append({"fc": fc})
+    elif kind == "stribeck":
+        variants.append({"fc": fc, "fs": 1.5 * fc, "vs": 0.05 * v_scale})
+    out = []
+    for extra in variants:
+        friction = make_friction(kind, size, **{**kwargs, **extra})
+        spec = model.spec()
+        start = ArmModel(
+            friction,
+            inertia=M,
+            viscous=b if spec["viscous_enabled"] else None,
+            c_m=spec["c_m"],
+            offset=lin.get("offset") if "offset" in spec["arm"] else None,
+            gravity=(max(lin["gravity"], 1e-12) if "gravity" in lin else None)
+            if "gravity" in spec["arm"]
+            else None,
+            estimate_c_m=spec["estimate_c_m"],
+            log_positive=spec["log_positive"],
+        )
+        out.append(start)
+    return out
+
+
+def _slope_bounds(model: ArmModel, v_stick: float) -> tuple[Tensor, Tensor]:
+    """Box on θ that keeps the friction's slope finite where the fit cannot see it.
+
+    Stick samples are excluded, so a tanh slope W1 (or a polytopic variance) is unconstrained
+    below the stick band and would run to a discontinuity that no explicit solver can
+    simulate. The box lets the steepest neuron saturate within a tenth of the stick band
+    (|W1| ≤ 10/v_stick) and keeps polytopic variances above (v_stick/10)².
+    """
+    k = model.num_parameters
+    lo = torch.full((k,), -math.inf, dtype=torch.float64)
+    hi = torch.full((k,), math.inf, dtype=torch.float64)
+    names = model.theta_names
+    mask = model.log_mask()
+    for i, name in enumerate(names):
+        if name.startswith("W1["):
+            lo[i], hi[i] = -10.0 / v_stick, 10.0 / v_stick
+        elif name.startswith("sigma"):
+            floor = (v_stick / 10.0) ** 2
+            lo[i] = math.log(floor) if bool(mask[i]) else floor
+    return lo, hi
+
+
+def _levenberg_marquardt(
+    model: ArmModel, q: Tensor, v: Tensor, a: Tensor, u: Tensor, iterations: int, v_stick: float
+) -> tuple[Tensor, float, int]:
+    """Minimise ‖c_m u − M a − (b v + C(v) + offset + g sin q)‖² over θ (estimation coords),
+    projected onto `_slope_bounds`."""
+    lo, hi = _slope_bounds(model, v_stick)
+    x = torch.stack([q, v], dim=-1)
+
+    def residual(theta: Tensor) -> Tensor:
+        # The field times M is the net torque c_m u − friction − ...: residual = M·(q̈_model − q̈).
+        _, arm = model.split(theta)
+        return (model.vector_field(x, u, theta)[:, 1] - a) * arm["inertia"]
+
+    theta = torch.maximum(torch.minimum(model.get_theta(), hi), lo)
+    r = residual(theta)
+    cost = float(r @ r)
+    lam = 1e-3
+    it = 0
+    for it in range(1, iterations + 1):  # noqa: B007 (returned: iterations used)
+        J = jacfwd(residual)(theta)
+        JtJ = J.T @ J
+        g = J.T @ r
+        improved = False
+        for _ in range(10):
+            A = JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12))
+            step = torch.linalg.solve(A, -g)
+            cand = torch.maximum(torch.minimum(theta + step, hi), lo)
+            r_new = residual(cand)
+            c_new = float(r_new @ r_new)
+            if math.isfinite(c_new) and c_new < cost:
+                rel = (cost - c_new) / max(cost, 1e-300)
+                theta, r, cost = cand, r_new, c_new
+                lam = max(lam / 3.0, 1e-9)
+                improved = True
+                break
+            lam *= 4.0
+        if not improved or rel < 1e-8:
+            break
+    return theta, cost, it
+
+
+def prefit(
+    model: ArmModel,
+    experiments: Experiment | Sequence[Experiment],
+    *,
+    cutoff_hz: float = 50.0,
+    stick_fraction: float = 0.02,
+    iterations: int = 50,
+) -> PrefitResult:
+    """Initial θ for `model` from the data by inverse-dynamics least squares.
+
+    Args:
+        model: the arm whose structure (friction kind/size, enabled terms, c_m) is kept; its
+            values are replaced. Not modified.
+        experiments: identification data (positions q and inputs u; velocity is re-derived).
+        cutoff_hz: zero-phase low-pass cut-off for velocity and acceleration.
+        stick_fraction: samples with ``|q̇| < stick_fraction · max|q̇|`` are left out.
+        iterations: Levenberg–Marquardt iterations per start.
+
+    Returns:
+        `PrefitResult` with a new model holding the pre-fitted θ.
+    """
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    if not exps:
+        raise TorchfricError("prefit needs at least one experiment")
+    q, v, a, u = _regression_data(exps, cutoff_hz, stick_fraction)
+    v_stick = stick_fraction * float(v.abs().max())
+    lin = _linear_skeleton(model, q, v, a, u)
+    v_scale = float(torch.quantile(v.abs(), 0.95))
+    best: tuple[float, ArmModel, int] | None = None
+    for start in _starts(model, lin, v_scale):
+        theta, cost, its = _levenberg_marquardt(start, q, v, a, u, iterations, v_stick)
+        if math.isfinite(cost) and (best is None or cost < best[0]):
+            best = (cost, copy.deepcopy(start).set_theta(theta), its)
+    if best is None:
+        raise TorchfricError(
+            "the pre-fit failed to find finite parameters; use model.init = 'config'"
+        )
+    cost, fitted, its = best
+    c_m = float(model.c_m.detach())
+    rms = math.sqrt(cost / q.numel())
+    rel = math.sqrt(cost) / max(float((c_m * u).norm()), 1e-300)
+    return PrefitResult(fitted, rms, rel, q.numel(), its)

@@ -1,0 +1,436 @@
+"""Runs from a config: data → initial θ → estimator → checkpoint, metrics and TensorBoard.
+
+The library core (`identify_ekf`, `prefit`, …) does no I/O; this module attaches logging,
+progress, snapshots and the final checkpoint through `EKFCallback`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from .arm import ArmModel
+from .checkpoint import (
+    build_checkpoint,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    sha256_file,
+)
+from .config import POSITION_UNITS, RIG_PREFIX, Config
+from .data import Experiment, load_experiment, make_experiment
+from .errors import DivergenceError, TorchfricError
+from .friction import make_friction
+from .identify import EKFCallback, EKFResult, PassRecord, identify_ekf
+from .metrics import SimulationScore, score_simulation
+from .prefit import prefit
+
+__all__ = ["load_data", "initial_model", "train", "TrainResult", "evaluate_model"]
+
+Printer = Callable[[str], None]
+
+
+# -- data ----------------------------------------------------------------------------------------
+def _load_one(cfg: Config, path: str) -> tuple[Experiment, str]:
+    """One experiment with velocity per `data.velocity`, and its fingerprint."""
+    d = cfg.data
+    if path.startswith(RIG_PREFIX):
+        from .rig import rig_experiment
+
+        name = path[len(RIG_PREFIX) :]
+        arrays = rig_experiment(name, seed=cfg.seed)
+        exp = make_experiment(arrays["t"], arrays["u"], arrays["q"], name=name)
+        if d.start or d.stop is not None:
+            exp = exp.slice(d.start, d.stop)
+        digest = exp.fingerprint()
+    else:
+        exp = load_experiment(
+            path, columns=d.columns or None, time_step=d.time_step, start=d.start, stop=d.stop
+        )
+        digest = sha256_file(path)
+    factor = POSITION_UNITS[d.position_unit]
+    if factor != 1.0:
+        exp = make_experiment(
+            exp.t,
+            exp.u,
+            exp.q * factor,
+            None if exp.qdot is None else exp.qdot * factor,
+            name=exp.name,
+        )
+    if d.velocity == "measured":
+        if exp.qdot is None:
+            raise TorchfricError(
+                f"data.velocity = 'measured' but {path} has no qdot column; map one in data.columns "
+                "or set data.velocity = 'highpass'"
+            )
+    else:
+        exp = exp.with_velocity(d.velocity, cutoff_hz=d.velocity_cutoff_hz)
+    return exp, digest
+
+
+def load_data(
+    cfg: Config,
+) -> tuple[list[Experiment], list[Experiment], list[Experiment], dict[str, str]]:
+    """(train, validation, test) experiments and SHA-256 fingerprints by path."""
+    prints: dict[str, str] = {}
+    groups = []
+    for paths in (cfg.data.train, cfg.data.validation, cfg.data.test):
+        exps = []
+        for p in paths:
+            exp, digest = _load_one(cfg, p)
+            prints[p] = digest
+            exps.append(exp)
+        groups.append(exps)
+    if not groups[0]:
+        raise TorchfricError("data.train is empty: give at least one identification file")
+    return groups[0], groups[1], groups[2], prints
+
+
+# -- model ---------------------------------------------------------------------------------------
+def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel:
+    """The model with the configured initial guesses (friction sized to the data when unset)."""
+    m = cfg.model
+    kwargs: dict[str, Any] = {}
+    if m.friction in ("tanh", "polytopic"):
+        v_scale = m.velocity_scale
+        if v_scale is None and train:
+            v_all = torch.cat(
+                [e.qdot.abs() for e in train if e.qdot is not None] or [torch.ones(1)]
+            )
+            v_scale = float(torch.quantile(v_all, 0.95)) or 1.0
+        kwargs["velocity_scale"] = v_scale or 1.0
+        kwargs["torque_scale"] = m.torque_scale if m.torque_scale is not None else 0.1
+    kwargs["log_positive"] = m.log_positive
+    friction = make_friction(m.friction, m.size, **kwargs)
+    return ArmModel(
+        friction,
+        inertia=m.inertia,
+        viscous=None if m.friction == "polytopic" else m.viscous,
+        c_m=m.c_m,
+        offset=m.offset,
+        gravity=m.gravity,
+        estimate_c_m=m.estimate_c_m,
+        log_positive=m.log_positive,
+    )
+
+
+def initial_model(cfg: Config, train: list[Experiment]) -> tuple[ArmModel, str]:
+    """Initial model per `model.init`: "prefit" (default), "config", or a checkpoint (warm start)."""
+    init = cfg.model.init
+    base = config_model(cfg, train)
+    if init == "config":
+        return base, "config"
+    if init == "prefit":
+        return prefit(base, train).model, "prefit"
+    warm = load_checkpoint(init)
+    if warm.theta_names != base.theta_names:
+        raise TorchfricError(
+            f"model.init checkpoint {init} has parameters {warm.theta_names} but this config's model "
+            f"has {base.theta_names}; use the same model.friction, model.size and terms"
+        )
+    return warm, f"checkpoint:{init}"
+
+
+# -- figures -------------------------------------------------------------------------------------
+def friction_figure(model: ArmModel, v_max: float, title: str) -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    v = torch.linspace(-v_max, v_max, 801, dtype=torch.float64)
+    with torch.no_grad():
+        f = model.friction_torque(v)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(v.numpy(), f.numpy())
+    ax.set_xlabel("velocity q̇")
+    ax.set_ylabel("friction b·q̇ + C(q̇) + offset")
+    ax.set_title(title)
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def response_figure(exp: Experiment, score: SimulationScore) -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = exp.t.numpy()
+    fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
+    ax[0].plot(t, exp.q.numpy(), label="measured")
+    ax[0].plot(t, score.states[:, 0].numpy(), "--", label="simulated")
+    ax[0].set_ylabel("q")
+    ax[0].legend(loc="best")
+    ax[1].plot(t, exp.qdot.numpy(), label="reconstructed")
+    ax[1].plot(t, score.states[:, 1].numpy(), "--", label="simulated")
+    ax[1].set_ylabel("q̇")
+    ax[1].set_xlabel("t [s]")
+    ax[0].set_title(f"{exp.name}: FIT q {score.fit_q:.1f} %, q̇ {score.fit_qdot:.1f} %")
+    fig.tight_layout()
+    return fig
+
+
+# -- evaluation ----------------------------------------------------------------------------------
+def evaluate_model(
+    model: ArmModel, exps: list[Experiment], cfg: Config
+) -> dict[str, SimulationScore]:
+    out = {}
+    for e in exps:
+        out[e.name] = score_simulation(
+            model, e, method=cfg.simulation.method, substeps=cfg.simulation.substeps
+        )
+    return out
+
+
+# -- training ------------------------------------------------------------------------------------
+@dataclass
+class TrainResult:
+    model: ArmModel
+    run_dir: pathlib.Path
+    checkpoint: pathlib.Path
+    metrics: dict[str, Any]
+    history: list[PassRecord] = field(default_factory=list)
+
+
+class _RunLogger(EKFCallback):
+    """TensorBoard scalars/figures, progress lines and per-pass snapshots."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        run_dir: pathlib.Path,
+        validation: list[Experiment],
+        fingerprints: dict[str, str],
+        writer: Any,
+        say: Printer,
+        v_max: float,
+    ) -> None:
+        self.cfg, self.run_dir, self.validation = cfg, run_dir, validation
+        self.fingerprints, self.writer, self.say, self.v_max = fingerprints, writer, say, v_max
+        self.t_pass = time.perf_counter()
+        self.last_fit: dict[str, dict[str, float]] = {}
+
+    def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
+        rate = samples_done / max(time.perf_counter() - self.t_pass, 1e-9)
+        self.say(
+            f"\r  pass {pass_index}/{self.cfg.estimator.passes}: {samples_done}/{samples_total} samples, {rate:,.0f} samples/s"
+        )
+
+    def log_model(
+        self, step: int, model: ArmModel, scalars: dict[str, float]
+    ) -> dict[str, dict[str, float]]:
+        for name, value in model.physical_parameters().items():
+            self.writer.add_scalar(f"parameters/{name}", value, step)
+        for key, value in scalars.items():
+            self.writer.add_scalar(key, value, step)
+        fits: dict[str, dict[str, float]] = {}
+        self.writer.add_figure(
+            "friction_curve", friction_figure(model, self.v_max, f"pass {step}"), step
+        )
+        for e, score in zip(
+            self.validation, evaluate_model(model, self.validation, self.cfg).values(), strict=True
+        ):
+            fits[e.name] = score.to_dict()
+            self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
+            self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
+            self.writer.add_figure(f"validation/{e.name}", response_figure(e, score), step)
+        self.writer.flush()
+        return fits
+
+    def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
+        scalars = {
+            "ekf/trace_P": record.trace_P,
+            "ekf/trace_P_theta": record.trace_P_theta,
+            "ekf/nis": record.nis,
+            "ekf/loglik": record.loglik,
+            "ekf/rel_change": record.rel_change,
+        }
+        for i, v in enumerate(record.innovation_rms):
+            scalars[f"ekf/innovation_rms/{i}"] = v
+        fits = self.log_model(record.index, result.model, scalars)
+        self.last_fit = fits
+        fit_txt = ", ".join(
+            f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
+        )
+        self.say(
+            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {record.seconds:.1f} s: "
+            f"inertia {record.parameters['inertia']:.6g}, Δθ {record.rel_change:.2e}"
+            + (f", {fit_txt}" if fit_txt else "")
+            + "\n"
+        )
+        snap = _estimator_payload(result, record.index)
+        payload = build_checkpoint(
+            result.model,
+            config=self.cfg,
+            estimator_state=snap,
+            metrics={"validation": fits},
+            data_fingerprints=self.fingerprints,
+            name=self.cfg.name,
+            complete=False,
+        )
+        save_checkpoint(self.run_dir / "passes" / f"pass_{record.index:03d}.pt", payload)
+        self.t_pass = time.perf_counter()
+        return None
+
+
+def _estimator_payload(result: EKFResult, pass_index: int) -> dict[str, Any]:
+    return {
+        "method": "ekf",
+        "pass": pass_index,
+        "theta": result.theta.clone(),
+        "P_theta": result.P_theta.clone(),
+        "history": [r.to_dict() for r in result.history],
+        "converged": result.converged,
+    }
+
+
+def _latest_snapshot(run_dir: pathlib.Path) -> pathlib.Path | None:
+    snaps = sorted((run_dir / "passes").glob("pass_*.pt"))
+    return snaps[-1] if snaps else None
+
+
+def train(
+    cfg: Config,
+    *,
+    run_dir: str | pathlib.Path | None = None,
+    resume: bool = False,
+    say: Printer | None = None,
+) -> TrainResult:
+    """Run the configured identification end to end; returns the fitted model and metrics.
+
+    With `resume`, continue from the last completed pass snapshot in the run directory (the
+    result equals an uninterrupted run's).
+    """
+    if say is None:
+
+        def say(msg: str) -> None:
+            sys.stderr.write(msg if msg.startswith("\r") or msg.endswith("\n") else msg + "\n")
+            sys.stderr.flush()
+
+    if cfg.estimator.method != "ekf":
+        raise TorchfricError(
+            f"estimator.method = {cfg.estimator.method!r} is not implemented in this version; "
+            "use estimator.method = 'ekf'"
+        )
+    torch.manual_seed(cfg.seed)
+    run = pathlib.Path(run_dir) if run_dir is not None else pathlib.Path(cfg.out_dir) / cfg.name
+    start = None
+    if resume:
+        snap = _latest_snapshot(run)
+        if snap is None:
+            raise TorchfricError(
+                f"--resume: no pass snapshots in {run / 'passes'}; start the run without --resume"
+            )
+        saved = read_checkpoint(snap)
+        if saved["config"] != cfg.to_dict():
+            raise TorchfricError(
+                f"--resume: the config differs from the one saved in {run}; resume with the same config and --set values"
+            )
+    run.mkdir(parents=True, exist_ok=True)
+    (run / "config.toml").write_text(cfg.to_toml())
+    t_start = time.perf_counter()
+    train_exps, val_exps, test_exps, fingerprints = load_data(cfg)
+    say(
+        f"torchfric: {cfg.name}: {len(train_exps)} identification experiment(s), "
+        f"{sum(e.n for e in train_exps)} samples; run directory {run}"
+    )
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(log_dir=str(run))
+    v_max = 1.2 * max(float(e.qdot.abs().max()) for e in train_exps if e.qdot is not None)
+    logger = _RunLogger(cfg, run, val_exps, fingerprints, writer, say, v_max)
+    try:
+        if resume:
+            model = ArmModel.from_spec(saved["model"])
+            est = saved["estimator"]
+            history = [PassRecord(**r) for r in est["history"]]
+            start = (est["theta"], est["P_theta"], history)
+            model.set_theta(est["theta"])
+            init_kind = saved["metrics"].get("init", "resume")
+            say(f"  resuming after pass {est['pass']}")
+        else:
+            model, init_kind = initial_model(cfg, train_exps)
+            fits = logger.log_model(0, model, {})
+            fit_txt = ", ".join(
+                f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
+            )
+            say(
+                f"  pass 0 ({init_kind}): inertia {float(model.inertia.detach()):.6g}"
+                + (f", {fit_txt}" if fit_txt else "")
+            )
+        # The initial model for the EKF: start θ from the resumed/initial model.
+        try:
+            result = identify_ekf(
+                model, train_exps, cfg.estimator.ekf_tuning(), callback=logger, start=start
+            )
+        except DivergenceError as err:
+            last = err.last_good
+            if isinstance(last, EKFResult) and last.history:
+                payload = build_checkpoint(
+                    last.model,
+                    config=cfg,
+                    estimator_state=_estimator_payload(last, last.passes),
+                    metrics={"diverged": str(err)},
+                    data_fingerprints=fingerprints,
+                    name=cfg.name,
+                    complete=False,
+                )
+                save_checkpoint(run / "last_good.pt", payload)
+                raise DivergenceError(
+                    f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
+                ) from None
+            raise
+        seconds = time.perf_counter() - t_start
+        final = result.model
+        metrics: dict[str, Any] = {
+            "name": cfg.name,
+            "estimator": "ekf",
+            "init": init_kind,
+            "passes": result.passes,
+            "converged": result.converged,
+            "seconds": seconds,
+            "samples_per_second": sum(r.samples for r in result.history)
+            / max(sum(r.seconds for r in result.history), 1e-9),
+            "inertia": float(final.inertia.detach()),
+            "parameters": final.physical_parameters(),
+            "validation": {},
+            "test": {},
+        }
+        for group, exps in (("validation", val_exps), ("test", test_exps)):
+            for name, score in evaluate_model(final, exps, cfg).items():
+                metrics[group][name] = score.to_dict()
+        (run / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        ckpt = pathlib.Path(cfg.checkpoint_dir) / f"{cfg.name}.pt"
+        payload = build_checkpoint(
+            final,
+            config=cfg,
+            estimator_state=_estimator_payload(result, result.passes),
+            metrics=metrics,
+            data_fingerprints=fingerprints,
+            name=cfg.name,
+            complete=True,
+        )
+        save_checkpoint(ckpt, payload)
+        say(
+            f"  done in {seconds:.1f} s: inertia {metrics['inertia']:.6g}; checkpoint {ckpt}; metrics {run / 'metrics.json'}"
+        )
+        for name, m in metrics["validation"].items():
+            say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+        return TrainResult(final, run, ckpt, metrics, result.history)
+    finally:
+        writer.close()
+
+
+def _finite(x: float) -> bool:
+    return math.isfinite(x)
