@@ -112,12 +112,6 @@ def test_polytopic_zero_at_zero_small(model: tuple) -> None:
     _check_zero(model[0])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: PolytopicFriction.evaluate sums the n local models in table order "
-    "[0, c_1..c_m, -c_1..-c_m]; for n = 5, 7 the mirrored terms do not cancel exactly in "
-    "float64, so C(0) is ~1e-17 instead of exactly 0 (fix: add each mirrored pair first)",
-)
 @pytest.mark.parametrize("n", [5, 7])
 def test_polytopic_zero_at_zero_exactly_larger_models(n: int) -> None:
     m = (n - 1) // 2

@@ -402,6 +402,7 @@ class EstimatorConfig:
     measure: str = "both"
     substeps: int = 1
     theta_bound: float = 1e6
+    compile: bool = True
     epochs: int = 200
     lr: float = 0.01
     window: int = 0
@@ -432,6 +433,7 @@ class EstimatorConfig:
             )
         c.integer("substeps", ge=1)
         c.number("theta_bound", gt=0.0)
+        c.boolean("compile")
         c.integer("epochs", ge=1)
         c.number("lr", gt=0.0)
         c.integer("window", ge=0)
@@ -450,6 +452,7 @@ class EstimatorConfig:
             tolerance=self.tolerance,
             substeps=self.substeps,
             theta_bound=self.theta_bound,
+            compile=self.compile,
         )
 
 

@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
-from torch.func import jacrev
+from torch.func import grad, jacrev
 
 from .arm import ArmModel
 from .errors import TorchfricError
@@ -43,6 +43,8 @@ __all__ = [
     "MEASUREMENTS",
     "measurement_matrix",
     "make_propagator",
+    "make_step",
+    "StepFn",
     "make_reference_flow",
     "stage_jacobians",
     "predict",
@@ -96,11 +98,13 @@ def stage_jacobians(model: ArmModel, X: Tensor, u: Tensor, theta: Tensor) -> Ten
     rows do not interact, so the gradient of the sum holds each point's Jacobian rows.
     """
     S, k = X.shape[0], theta.shape[-1]
-    with torch.enable_grad():
-        Z = torch.cat([X, theta.detach().expand(S, k)], dim=-1).repeat(2, 1).requires_grad_(True)
+
+    def total(Z: Tensor) -> Tensor:
         out = model.dynamics(Z[:, :2], u, *model.split(Z[:, 2:]))
-        total = out[:S, 0].sum() + out[S:, 1].sum()
-        (G,) = torch.autograd.grad(total, Z)
+        return out[:S, 0].sum() + out[S:, 1].sum()
+
+    Z = torch.cat([X, theta.expand(S, k)], dim=-1).repeat(2, 1)
+    G = grad(total)(Z)
     return torch.stack([G[:S], G[S:]], dim=1)
 
 
@@ -230,6 +234,53 @@ def step(
     return update(predict(state, u_prev, dt, Q, flow), y, H, R)
 
 
+StepFn = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]
+
+
+def make_step(flow: Propagator, *, compile: bool = False) -> StepFn:
+    """The per-sample step as a function of tensors only, optionally through `torch.compile`.
+
+    ``fn(x, P, u_prev, y, dt, Q, H, R, bound) -> (x⁺, P⁺, e, nis, loglik, ok)``; `ok` is the
+    `healthy` flag (one sync per sample instead of one per check). The model is captured in
+    `flow`. With `compile`, the first call compiles (Inductor, cached across runs); if that
+    fails for any reason the eager function is used from then on — same arithmetic.
+    """
+
+    def eager(
+        x: Tensor,
+        P: Tensor,
+        u: Tensor,
+        y: Tensor,
+        dt: Tensor,
+        Q: Tensor,
+        H: Tensor,
+        R: Tensor,
+        bound: Tensor,
+    ):  # type: ignore[no-untyped-def]
+        state, inn = step(EKFState(x, P), u, y, dt, Q, H, R, flow)
+        return state.x, state.P, inn.e, inn.nis, inn.loglik, healthy(state, inn, bound)
+
+    if not compile:
+        return eager
+    compiled = torch.compile(eager, dynamic=False, fullgraph=True)
+    chosen: list[StepFn] = []
+
+    def fast(*args: Tensor):  # type: ignore[no-untyped-def]
+        if chosen:
+            return chosen[0](*args)
+        try:
+            out = compiled(*args)
+            chosen.append(compiled)
+        except Exception:  # noqa: BLE001 - any compiler failure means: use the eager step
+            out = eager(*args)
+            chosen.append(eager)
+        return out
+
+    fast.eager = eager  # type: ignore[attr-defined]
+    fast.chosen = chosen  # type: ignore[attr-defined]
+    return fast
+
+
 @dataclass
 class PassStats:
     """Accumulated diagnostics of one pass over one experiment (sums; see `run_pass`)."""
@@ -248,6 +299,19 @@ class FilterFailure(Exception):
         self.sample = sample
         self.reason = reason
         self.state = state
+
+
+def healthy(state: EKFState, inn: Innovation, bound: Tensor) -> Tensor:
+    """0-d bool: finite belief, finite NIS (S positive definite), no negative variance, θ in box."""
+    x, P = state
+    d = torch.diagonal(P)
+    return (
+        torch.isfinite(x).all()
+        & torch.isfinite(P).all()
+        & torch.isfinite(inn.nis)
+        & (d >= -1e-9 * (1.0 + d.abs().max())).all()
+        & (x[2:].abs() <= bound).all()
+    )
 
 
 def _check(state: EKFState, inn: Innovation, theta_bound: float) -> str | None:
@@ -275,7 +339,7 @@ def run_pass(
     Q: Tensor,
     H: Tensor,
     R: Tensor,
-    flow: Propagator,
+    step_fn: StepFn,
     *,
     theta_bound: float = 1e6,
     continuing: bool = False,
@@ -300,16 +364,18 @@ def run_pass(
         state = new_state
         sum_e2, sum_nis, loglik = inn.e * inn.e, inn.nis, inn.loglik
         stats.samples = 1
+    bound = torch.tensor(theta_bound, dtype=torch.float64)
     for k in range(1, y.shape[0]):
-        new_state, inn = step(state, u[k - 1], y[k], dt, Q, H, R, flow)
-        # Checked every sample: the sync is small beside the step, and it names the exact sample.
-        reason = _check(new_state, inn, theta_bound)
-        if reason:
+        x, P, e, nis, ll, ok = step_fn(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
+        # Checked every sample (one sync), so a failure names the exact sample.
+        if not bool(ok):
+            inn = Innovation(e, e.new_empty(0), nis, ll)
+            reason = _check(EKFState(x, P), inn, theta_bound) or "the filter became unhealthy"
             raise FilterFailure(sample_offset + k, reason, state)
-        state = new_state
-        sum_e2 = sum_e2 + inn.e * inn.e
-        sum_nis = sum_nis + inn.nis
-        loglik = loglik + inn.loglik
+        state = EKFState(x, P)
+        sum_e2 = sum_e2 + e * e
+        sum_nis = sum_nis + nis
+        loglik = loglik + ll
     stats.samples += y.shape[0] - 1
     stats.sum_e2 = sum_e2
     stats.sum_nis = float(sum_nis)

@@ -266,7 +266,10 @@ class PolytopicFriction(Friction):
         d = v.unsqueeze(-1) - centres
         # w_i = ρ_i / Σ ρ_j with log ρ_i = −½ (v − c_i)² / σ_i (softmax: stable far from all centres).
         w = torch.softmax(-0.5 * d * d / variances, dim=-1)
-        return (w * (slopes * d + offsets)).sum(-1)
+        terms = w * (slopes * d + offsets)
+        # Add each mirrored pair first so that C(0) is exactly 0 in floating point too.
+        m = self.m
+        return terms[..., 0] + (terms[..., 1 : m + 1] + terms[..., m + 1 :]).sum(-1)
 
 
 class CoulombFriction(Friction):

@@ -25,7 +25,9 @@ from .ekf import (
     EKFState,
     FilterFailure,
     PassStats,
+    StepFn,
     make_propagator,
+    make_step,
     measurement_matrix,
     run_pass,
 )
@@ -60,6 +62,9 @@ class EKFTuning:
         tolerance: stop after a pass with ‖Δθ‖/‖θ‖ below this; 0 disables the early stop.
         substeps: RK4 sub-steps per sample interval in the prediction.
         theta_bound: divergence box on |θ| (estimation coordinates).
+        compile: run the per-sample step through `torch.compile` (one-time compile of a few
+            seconds, cached by Inductor across runs; 5–7× faster per step here). Falls back to
+            the eager step, with identical arithmetic, when compilation is unavailable.
     """
 
     p0_state: tuple[float, float] = (0.0, 0.0)
@@ -72,6 +77,7 @@ class EKFTuning:
     tolerance: float = 1e-4
     substeps: int = 1
     theta_bound: float = 1e6
+    compile: bool = False
 
     def check(self, k: int) -> None:
         """Validate against a model with k parameters; raises TorchfricError naming the field."""
@@ -201,6 +207,7 @@ def identify_ekf(
     R = torch.diag(torch.as_tensor(tuning.r, dtype=torch.float64))
     data = [(e, e.u.to(torch.float64), _measurements(e, tuning.measure)) for e in exps]
     flow = make_propagator(model, tuning.substeps)
+    step_fn = make_step(flow, compile=tuning.compile)
 
     if start is not None:
         theta, P_theta, history = start[0].clone(), start[1].clone(), list(start[2])
@@ -242,7 +249,7 @@ def identify_ekf(
                     Q,
                     H,
                     R,
-                    flow,
+                    step_fn,
                     tuning.theta_bound,
                     callback,
                     p,
@@ -296,7 +303,7 @@ def _filter_with_progress(
     Q: Tensor,
     H: Tensor,
     R: Tensor,
-    flow: Any,
+    step_fn: StepFn,
     theta_bound: float,
     callback: EKFCallback,
     pass_index: int,
@@ -319,7 +326,7 @@ def _filter_with_progress(
             Q,
             H,
             R,
-            flow,
+            step_fn,
             theta_bound=theta_bound,
             continuing=start > 0,
             sample_offset=lo,

@@ -353,7 +353,7 @@ def train(
     try:
         if resume:
             model = ArmModel.from_spec(saved["model"])
-            est = saved["estimator"]
+            est = saved["estimator"]["state"]
             history = [PassRecord(**r) for r in est["history"]]
             start = (est["theta"], est["P_theta"], history)
             model.set_theta(est["theta"])

@@ -114,8 +114,13 @@ def simulate(
         raise TorchfricError(f"x0 must end in 2 entries [q, qdot], got shape {tuple(x0.shape)}")
     if not bool((t[1:] > t[:-1]).all()):
         raise TorchfricError("t must be strictly increasing")
+    if theta is not None and theta.shape[-1] != model.num_parameters:
+        raise TorchfricError(
+            f"theta has {theta.shape[-1]} entries but the model has {model.num_parameters} "
+            f"({', '.join(model.theta_names)})"
+        )
     if substeps == "auto":
-        dt = float((t[-1] - t[0]) / (t.numel() - 1))
+        dt = float((t[1:] - t[:-1]).max())  # the longest interval sets the stability limit
         with torch.no_grad():
             if theta is not None:
                 probe = ArmModel.from_spec(model.spec()).set_theta(theta.detach())

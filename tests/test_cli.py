@@ -1,0 +1,227 @@
+"""End-to-end runs through the CLI: train, TensorBoard content, resume, evaluate, simulate,
+export, generate, and one-line errors. Runs are short slices of the synthetic rig."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from torchfric.checkpoint import read_checkpoint
+from torchfric.cli import main
+
+SHORT = [
+    "--set", "data.stop=1500",
+    "--set", "data.test=[]",
+    "--set", "estimator.passes=2",
+    "--set", "estimator.tolerance=0",
+]  # fmt: skip
+
+
+def _config(tmp: pathlib.Path, name: str = "short", friction: str = "tanh") -> pathlib.Path:
+    cfg = tmp / f"{name}.toml"
+    cfg.write_text(
+        textwrap.dedent(
+            f"""
+            name = "{name}"
+            out_dir = "{(tmp / "runs").as_posix()}"
+            checkpoint_dir = "{(tmp / "checkpoints").as_posix()}"
+            [data]
+            train = ["rig:identification"]
+            validation = ["rig:validation"]
+            [model]
+            friction = "{friction}"
+            c_m = 16.0
+            """
+        )
+    )
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> dict[str, pathlib.Path]:
+    tmp = tmp_path_factory.mktemp("run")
+    cfg = _config(tmp)
+    assert main(["train", str(cfg), "--quiet", *SHORT]) == 0
+    return {
+        "tmp": tmp,
+        "cfg": cfg,
+        "run": tmp / "runs" / "short",
+        "ckpt": tmp / "checkpoints" / "short.pt",
+    }
+
+
+def test_train_writes_run_directory_and_checkpoint(trained: dict[str, pathlib.Path]) -> None:
+    run = trained["run"]
+    assert (run / "config.toml").is_file()
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["passes"] == 2
+    assert 0.02 < metrics["inertia"] < 0.04
+    val = metrics["validation"]["validation"]
+    assert set(val) >= {"fit_q", "fit_qdot", "rms_q", "rms_qdot"}
+    assert sorted(p.name for p in (run / "passes").glob("*.pt")) == ["pass_001.pt", "pass_002.pt"]
+    raw = torch.load(trained["ckpt"], weights_only=True)
+    assert raw["format"] == "torchfric-checkpoint" and raw["complete"] is True
+    assert raw["parameters"]["inertia"] == pytest.approx(metrics["inertia"])
+    assert len(raw["data"]) == 2 and all(len(h) == 64 for h in raw["data"].values())
+
+
+def test_tensorboard_events_hold_parameters_trace_fit_and_figures(
+    trained: dict[str, pathlib.Path],
+) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(trained["run"]), size_guidance={"scalars": 0, "images": 0})
+    acc.Reload()
+    tags = acc.Tags()
+    scalars = set(tags["scalars"])
+    for name in ["W1[1]", "W2[3]", "viscous", "inertia"]:
+        assert f"parameters/{name}" in scalars
+    for key in [
+        "ekf/trace_P",
+        "ekf/trace_P_theta",
+        "ekf/innovation_rms/0",
+        "ekf/nis",
+        "validation/validation/fit_q",
+    ]:
+        assert key in scalars
+    # pass 0 (pre-fit) and passes 1, 2 for the parameters; passes 1, 2 for the filter scalars.
+    assert [e.step for e in acc.Scalars("parameters/inertia")] == [0, 1, 2]
+    assert [e.step for e in acc.Scalars("ekf/trace_P")] == [1, 2]
+    metrics = json.loads((trained["run"] / "metrics.json").read_text())
+    last = acc.Scalars("parameters/inertia")[-1].value
+    assert last == pytest.approx(metrics["inertia"], rel=1e-6)
+    assert "friction_curve" in tags["images"] and "validation/validation" in tags["images"]
+
+
+def test_resume_after_interruption_equals_uninterrupted(
+    trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
+) -> None:
+    run = trained["run"]
+    # Copy the run, then forget pass 2 as if the process had been killed during it.
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    (copy / "passes" / "pass_002.pt").unlink()
+    (copy / "metrics.json").unlink()
+    assert main(["train", str(trained["cfg"]), "--quiet", *SHORT, "--resume", str(copy)]) == 0
+    resumed = read_checkpoint(trained["tmp"] / "checkpoints" / "short.pt")
+    original = read_checkpoint(run / "passes" / "pass_002.pt")
+    torch.testing.assert_close(resumed["theta"], original["theta"], rtol=0, atol=1e-12)
+    assert resumed["estimator"]["state"]["pass"] == 2
+
+
+def test_evaluate_simulate_and_export_agree(
+    trained: dict[str, pathlib.Path], tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ckpt = str(trained["ckpt"])
+    assert main(["evaluate", ckpt, "rig:validation", "--json"]) == 0
+    scores = json.loads(capsys.readouterr().out)
+    assert np.isfinite(scores["fit_q"]) and "inertia" in scores["parameters"]
+    assert main(["evaluate", ckpt, "rig:validation"]) == 0
+    table = capsys.readouterr().out
+    assert "FIT %" in table and "inertia" in table
+
+    data = tmp_path / "val.csv"
+    t = np.arange(800) * 1e-3
+    u = 0.03 * np.sign(np.sin(7.0 * t))
+    q = np.cumsum(np.full(800, 1e-4))
+    np.savetxt(
+        data, np.column_stack([t, u, q]), delimiter=",", header="t,u,q", comments="", fmt="%.17g"
+    )
+    sim = tmp_path / "sim.csv"
+    assert main(["simulate", ckpt, str(data), "--out", str(sim)]) == 0
+    capsys.readouterr()
+    simulated = np.loadtxt(sim, delimiter=",", skiprows=1)
+    assert open(sim).readline().strip() == "t,u,q,qdot"
+    assert simulated.shape == (800, 4)
+
+    ts = tmp_path / "arm.ts"
+    assert main(["export", ckpt, "--out", str(ts)]) == 0
+    # Load the TorchScript module in a process where torchfric cannot be imported.
+    script = textwrap.dedent(
+        f"""
+        import sys
+        sys.modules["torchfric"] = None  # any import of torchfric now fails
+        import numpy as np, torch
+        try:
+            import torchfric  # noqa: F401
+            raise SystemExit("torchfric importable")
+        except ImportError:
+            pass
+        d = np.loadtxt({str(data)!r}, delimiter=",", skiprows=1)
+        m = torch.jit.load({str(ts)!r})
+        t = torch.tensor(d[:, 0]); u = torch.tensor(d[:, 1])
+        qd0 = torch.tensor({float(simulated[0, 3])!r}, dtype=torch.float64)
+        q, qdot = m.simulate(t, u, torch.stack([torch.tensor(d[0, 2]), qd0]))
+        np.savetxt({str(tmp_path / "ts.csv")!r}, np.column_stack([q.numpy(), qdot.numpy()]), delimiter=",", fmt="%.17g")
+        print(float(m.friction(torch.tensor([0.0], dtype=torch.float64))[0]))
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert float(out.stdout.strip()) == pytest.approx(0.0, abs=1e-15)  # odd friction, no offset
+    ts_states = np.loadtxt(tmp_path / "ts.csv", delimiter=",")
+    np.testing.assert_allclose(ts_states, simulated[:, 2:], rtol=0, atol=1e-9)
+
+
+def test_generate_writes_rig_files(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["generate", str(tmp_path / "rig")]) == 0
+    for name in [
+        "identification",
+        "validation",
+        "extrapolation",
+        "changed_identification",
+        "changed_validation",
+    ]:
+        assert open(tmp_path / "rig" / f"{name}.csv").readline().strip() == "t,u,q"
+    assert (tmp_path / "rig" / "truth.json").is_file()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--set", "estimator.pases=3"], "passes"),
+        (["--set", "estimator.passes=0"], "passes"),
+        (["--set", "model.friction=spline"], "friction"),
+        (["--set", "data.train=missing.csv"], "missing.csv"),
+        (["--set", "model.size=4", "--set", "model.friction=polytopic"], "odd"),
+        (["--set", "estimator.method=output_error"], "output_error"),
+    ],
+)
+def test_bad_input_is_one_line_error(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str
+) -> None:
+    cfg = _config(tmp_path)
+    assert main(["train", str(cfg), "--quiet", *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
+    assert message in err
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_refuses_corrupt_checkpoint(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    assert main(["evaluate", str(bad), "rig:validation"]) == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_module_entry_point_help() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "torchfric", "train", "--help"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "--resume" in out.stdout and "--set" in out.stdout
