@@ -28,7 +28,6 @@ percent level.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import pytest
 import torch
@@ -44,15 +43,6 @@ pytestmark = pytest.mark.slow
 
 N_SAMPLES = 3000
 V_MIN = 0.2  # rad/s: quantum / dt, below it q̇ is quantisation noise
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Thousands of tiny sequential tensor ops: intra-op threads only add contention.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _true_model(kind: str) -> ArmModel:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import pathlib
 import sys
 from collections.abc import Sequence
@@ -233,6 +234,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     torch.set_default_dtype(torch.float64)
+    # The filter's tensors are tiny: a thread pool only adds overhead, and with a busy second
+    # core it made small operations several times slower here. TORCHFRIC_THREADS overrides.
+    torch.set_num_threads(int(os.environ.get("TORCHFRIC_THREADS", "1")))
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

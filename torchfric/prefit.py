@@ -13,7 +13,8 @@ reference identification (IDIM-LS). Steps:
 
 Stick phases (``|q̇|`` below a threshold) are left out: there the friction is a pre-sliding
 force, not a function of velocity, and the filtered acceleration is dominated by quantisation.
-The 3 filter settling times at each end of every experiment are left out too.
+The 3 filter settling times at each end of every experiment are left out too, and the
+low-passed signals are decimated to 4 samples per cut-off period.
 """
 
 from __future__ import annotations
@@ -60,7 +61,10 @@ def _regression_data(
             )
         v = zero_phase_derivative(exp.q, exp.dt, cutoff_hz)
         a = zero_phase_acceleration(exp.q, exp.dt, cutoff_hz)
-        sl = slice(edge, exp.n - edge)
+        # After the low-pass, samples closer than 1/(4·cut-off) carry little new information:
+        # decimate (the EMPS IDIM recipe does the same), which makes the fit ~5x cheaper at 1 kHz.
+        every = max(1, int(1.0 / (4.0 * cutoff_hz * exp.dt)))
+        sl = slice(edge, exp.n - edge, every)
         qs.append(exp.q[sl])
         vs.append(v[sl])
         accs.append(a[sl])

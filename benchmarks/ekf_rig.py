@@ -1,0 +1,155 @@
+"""EKF on the synthetic rig: accuracy against the truth and filter speed. Prints a table.
+
+    python benchmarks/ekf_rig.py                      # train both models (paper tuning), then score
+    python benchmarks/ekf_rig.py --from-checkpoints   # score checkpoints/arm_{tanh,polytopic}_ekf.pt
+    python benchmarks/ekf_rig.py --speed-only         # only the steps/s section
+
+Accuracy targets (issue 3): inertia within 1 % of the truth, validation FIT >= 95 % on q and q̇,
+friction curve within 5 % (RMS relative to peak) of the rig's steady-state curve over the excited
+velocity range. Speed: filter steps per second for one filter, tanh(3), eager and compiled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import torch
+
+from torchfric import ArmModel, EKFTuning, load_checkpoint, make_experiment, make_friction
+from torchfric.config import Config
+from torchfric.ekf import EKFState, make_propagator, make_step, measurement_matrix
+from torchfric.metrics import friction_curve_error, score_simulation
+from torchfric.rig import RigParameters, rig_experiment
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def rig(name: str):  # type: ignore[no-untyped-def]
+    d = rig_experiment(name)
+    return make_experiment(d["t"], d["u"], d["q"], name=name).with_velocity("highpass")
+
+
+def accuracy(models: dict[str, tuple[ArmModel, dict]]) -> list[dict]:
+    truth = RigParameters()
+    ident, val, extra = rig("identification"), rig("validation"), rig("extrapolation")
+    v_peak = float(ident.qdot.abs().max())
+    v = torch.linspace(-v_peak, v_peak, 801)
+    v = v[v.abs() > 0.05 * v_peak]  # the excited sliding range; the stick band is not a curve
+    ref = torch.as_tensor(truth.steady_state_friction(v.numpy()))
+    rows = []
+    for name, (model, meta) in models.items():
+        sv, se = score_simulation(model, val), score_simulation(model, extra)
+        rows.append(
+            {
+                "model": name,
+                "inertia": float(model.inertia.detach()),
+                "inertia_err_%": 100 * (float(model.inertia.detach()) / truth.inertia - 1),
+                "val_fit_q": sv.fit_q,
+                "val_fit_qdot": sv.fit_qdot,
+                "extra_fit_q": se.fit_q,
+                "extra_fit_qdot": se.fit_qdot,
+                "friction_err_%": 100 * friction_curve_error(model, v, ref),
+                "passes": meta.get("passes"),
+                "seconds": meta.get("seconds"),
+            }
+        )
+    return rows
+
+
+def speed(samples: int = 3000) -> list[dict]:
+    ident = rig("identification").slice(0, samples)
+    rows = []
+    for kind, size in (("tanh", 3), ("polytopic", 3)):
+        model = ArmModel(
+            make_friction(kind, size),
+            inertia=0.03,
+            viscous=0.01 if kind == "tanh" else None,
+            c_m=16.0,
+        )
+        n = 2 + model.num_parameters
+        tuning = EKFTuning()
+        Q = torch.diag(torch.tensor([0.0, 1e-3] + [0.0] * (n - 2)))
+        R = torch.diag(torch.tensor(tuning.r))
+        H = measurement_matrix("both", n)
+        y = torch.stack([ident.q, ident.qdot], -1)
+        dt = torch.tensor(ident.dt)
+        bound = torch.tensor(1e6)
+        for compiled in (False, True):
+            fn = make_step(make_propagator(model, 1), compile=compiled)
+            x = torch.cat([torch.stack([ident.q[0], ident.qdot[0]]), model.get_theta()])
+            P = torch.diag(torch.tensor([0.0, 0.0] + [1.0] * (n - 2)))
+            t0 = time.perf_counter()
+            fn(x, P, ident.u[0], y[1], dt, Q, H, R, bound)  # compile (if any) on the first call
+            first = time.perf_counter() - t0
+            state = EKFState(x, P)
+            t0 = time.perf_counter()
+            for k in range(1, samples):
+                xk, Pk, *_ = fn(state.x, state.P, ident.u[k - 1], y[k], dt, Q, H, R, bound)
+                state = EKFState(xk, Pk)
+            el = time.perf_counter() - t0
+            rows.append(
+                {
+                    "model": f"{kind}({size})",
+                    "path": "compiled" if compiled else "eager",
+                    "steps_per_s": (samples - 1) / el,
+                    "us_per_step": 1e6 * el / (samples - 1),
+                    "first_call_s": first,
+                }
+            )
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--from-checkpoints", action="store_true")
+    ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument("--json", type=pathlib.Path, default=None, help="also write the tables as JSON")
+    args = ap.parse_args()
+    torch.set_default_dtype(torch.float64)
+    torch.set_num_threads(1)
+    out: dict[str, list[dict]] = {}
+    if not args.speed_only:
+        models = {}
+        for kind in ("tanh", "polytopic"):
+            name = f"arm_{kind}_ekf"
+            if args.from_checkpoints:
+                ckpt = ROOT / "checkpoints" / f"{name}.pt"
+                raw = torch.load(ckpt, weights_only=True)
+                models[name] = (load_checkpoint(ckpt), raw["metrics"])
+            else:
+                from torchfric.runner import train
+
+                cfg = Config.load(
+                    ROOT / "experiments" / "configs" / f"{name}.toml", ["data.test=[]"]
+                )
+                res = train(cfg, run_dir=ROOT / "runs" / f"bench_{name}")
+                models[name] = (res.model, res.metrics)
+        out["accuracy"] = accuracy(models)
+        print(
+            f"{'model':<20}{'M':>10}{'M err %':>9}{'val FIT q':>11}{'val FIT q̇':>11}"
+            f"{'extr FIT q':>12}{'extr FIT q̇':>12}{'fric err %':>11}{'passes':>8}{'time s':>8}"
+        )
+        for r in out["accuracy"]:
+            print(
+                f"{r['model']:<20}{r['inertia']:>10.5f}{r['inertia_err_%']:>9.2f}{r['val_fit_q']:>11.2f}"
+                f"{r['val_fit_qdot']:>11.2f}{r['extra_fit_q']:>12.2f}{r['extra_fit_qdot']:>12.2f}"
+                f"{r['friction_err_%']:>11.2f}{r['passes'] or 0:>8}{(r['seconds'] or 0):>8.0f}"
+            )
+        print()
+    out["speed"] = speed()
+    print(f"{'model':<16}{'path':<10}{'steps/s':>10}{'µs/step':>10}{'first call s':>14}")
+    for r in out["speed"]:
+        print(
+            f"{r['model']:<16}{r['path']:<10}{r['steps_per_s']:>10.0f}{r['us_per_step']:>10.0f}{r['first_call_s']:>14.1f}"
+        )
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
