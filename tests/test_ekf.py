@@ -942,11 +942,6 @@ def test_inf_in_unvalidated_data_is_a_divergence_at_that_sample(short_exp: Exper
         identify_ekf(_small_start(), bad, _tuning(passes=1), progress_every=100)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: identify.py pairs last_good's θ (start of the pass) with P_θθ after the "
-    "experiments already filtered in that pass",
-)
 def test_divergence_in_second_experiment_returns_a_consistent_last_good() -> None:
     e1 = _simulated(120, name="one")
     e2 = _simulated(120, phase=0.7, name="two")

@@ -403,6 +403,8 @@ class EstimatorConfig:
     substeps: int = 1
     theta_bound: float = 1e6
     compile: bool = True
+    p0_relative: bool = False
+    rollback: bool = True
     epochs: int = 200
     lr: float = 0.01
     window: int = 0
@@ -434,6 +436,8 @@ class EstimatorConfig:
         c.integer("substeps", ge=1)
         c.number("theta_bound", gt=0.0)
         c.boolean("compile")
+        c.boolean("p0_relative")
+        c.boolean("rollback")
         c.integer("epochs", ge=1)
         c.number("lr", gt=0.0)
         c.integer("window", ge=0)
@@ -453,6 +457,8 @@ class EstimatorConfig:
             substeps=self.substeps,
             theta_bound=self.theta_bound,
             compile=self.compile,
+            p0_relative=self.p0_relative,
+            rollback=self.rollback,
         )
 
 

@@ -62,6 +62,14 @@ class EKFTuning:
         tolerance: stop after a pass with ‖Δθ‖/‖θ‖ below this; 0 disables the early stop.
         substeps: RK4 sub-steps per sample interval in the prediction.
         theta_bound: divergence box on |θ| (estimation coordinates).
+        p0_relative: read `p0_theta` in units of each parameter's own size: the initial
+            variance of a linearly stored θ_i is ``p0_theta · θ_i²`` (log-stored entries are
+            already relative). The paper's P0 = 1 is absolute, which suits weights of order 1
+            but lets a centre of 0.04 rad/s jump by ±1 in the first pass.
+        rollback: undo a pass that lowers the innovation log-likelihood (θ and P_θθ go back to
+            the best pass) and stop there. Re-running the same pass from the same state would
+            repeat the same step, so stopping is the only sensible continuation. The undone pass
+            stays in the history with ``rolled_back = True``.
         compile: run the per-sample step through `torch.compile` (one-time compile of a few
             seconds, cached by Inductor across runs; 5–7× faster per step here). Falls back to
             the eager step, with identical arithmetic, when compilation is unavailable.
@@ -78,6 +86,8 @@ class EKFTuning:
     substeps: int = 1
     theta_bound: float = 1e6
     compile: bool = False
+    p0_relative: bool = False
+    rollback: bool = True
 
     def check(self, k: int) -> None:
         """Validate against a model with k parameters; raises TorchfricError naming the field."""
@@ -97,13 +107,17 @@ class EKFTuning:
         _vector(self.q_state, 2, "q_state")
         _vector(self.p0_theta, k, "p0_theta")
         _vector(self.q_theta, k, "q_theta")
-        if not isinstance(self.passes, int) or self.passes < 1:
+        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or self.passes < 1:
             raise TorchfricError(f"passes must be an integer >= 1, got {self.passes!r}")
         if not (self.tolerance >= 0):
             raise TorchfricError(
                 f"tolerance must be >= 0 (0 disables early stop), got {self.tolerance!r}"
             )
-        if not isinstance(self.substeps, int) or self.substeps < 1:
+        if (
+            not isinstance(self.substeps, int)
+            or isinstance(self.substeps, bool)
+            or self.substeps < 1
+        ):
             raise TorchfricError(f"substeps must be an integer >= 1, got {self.substeps!r}")
         if not (self.theta_bound > 0):
             raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")
@@ -124,6 +138,7 @@ class PassRecord:
     rel_change: float  # ‖θ_new − θ_old‖ / ‖θ_old‖
     seconds: float
     samples: int
+    rolled_back: bool = False  # this pass lowered the log-likelihood and was undone
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -213,7 +228,11 @@ def identify_ekf(
         theta, P_theta, history = start[0].clone(), start[1].clone(), list(start[2])
     else:
         theta = model.get_theta()
-        P_theta = torch.diag(_vector(tuning.p0_theta, k, "p0_theta"))
+        p0 = _vector(tuning.p0_theta, k, "p0_theta")
+        if tuning.p0_relative:
+            size = torch.where(model.log_mask(), torch.ones_like(theta), theta.abs())
+            p0 = p0 * size.clamp_min(1e-6 * float(size.max())) ** 2
+        P_theta = torch.diag(p0)
         history = []
 
     def result_for(th: Tensor, Pt: Tensor, hist: list[PassRecord], converged: bool) -> EKFResult:
@@ -222,11 +241,14 @@ def identify_ekf(
 
     total = sum(e.n for e, _, _ in data)
     converged = bool(history) and tuning.tolerance > 0 and history[-1].rel_change < tuning.tolerance
+    stopped = bool(history) and history[-1].rolled_back
+    # Best pass so far (for rollback). A pass that was not rolled back is always the best one.
+    best = (history[-1].loglik, theta.clone(), P_theta.clone()) if history else None
     for p in range(len(history) + 1, tuning.passes + 1):
-        if converged:
+        if converged or stopped:
             break
         t0 = time.perf_counter()
-        theta_old = theta.clone()
+        theta_old, P_theta_old = theta.clone(), P_theta.clone()
         sum_e2 = torch.zeros(H.shape[0], dtype=torch.float64)
         sum_nis = loglik = 0.0
         samples = 0
@@ -258,7 +280,7 @@ def identify_ekf(
                     progress_every,
                 )
             except FilterFailure as fail:
-                last = result_for(theta_old, P_theta, history, False)
+                last = result_for(theta_old, P_theta_old, history, False)
                 t_fail = float(exp.t[fail.sample])
                 xs = ", ".join(f"{v:.4g}" for v in fail.state.x[:2].tolist())
                 raise DivergenceError(
@@ -288,8 +310,14 @@ def identify_ekf(
             seconds=time.perf_counter() - t0,
             samples=samples,
         )
+        if tuning.rollback and best is not None and record.loglik < best[0] - 1e-6 * abs(best[0]):
+            record.rolled_back = True
+            theta, P_theta = best[1].clone(), best[2].clone()
+            stopped = True
+        else:
+            best = (record.loglik, theta.clone(), P_theta.clone())
         history.append(record)
-        converged = tuning.tolerance > 0 and rel < tuning.tolerance
+        converged = not stopped and tuning.tolerance > 0 and rel < tuning.tolerance
         if callback.on_pass_end(record, result_for(theta, P_theta, history, converged)) is False:
             break
     return result_for(theta, P_theta, history, converged)

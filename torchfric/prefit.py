@@ -119,8 +119,26 @@ def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmM
             w1 = torch.logspace(math.log10(lo), math.log10(hi), size, dtype=torch.float64) / v_scale
             variants.append({"w1": w1, "w2": torch.full((size,), fc / size, dtype=torch.float64)})
     elif kind == "polytopic":
-        for spread in (1.0, 0.5):
-            variants.append({"velocity_scale": spread * v_scale, "torque_scale": fc})
+        # Pair centres and centre-model widths over two decades of the velocity scale: a narrow
+        # centre model (a steep slope through zero) is often the best start, and LM does not
+        # reach it from a wide one.
+        m = (size - 1) // 2
+        for frac in (0.04, 0.13, 0.4):
+            for width in (0.01, 0.04, 0.13):
+                c = frac * v_scale * torch.arange(1, m + 1, dtype=torch.float64)
+                variants.append(
+                    {
+                        "c": c,
+                        "sigma": torch.cat([torch.tensor([(width * v_scale) ** 2]), c**2]),
+                        "a": torch.cat(
+                            [
+                                torch.tensor([fc / (width * v_scale)]),
+                                torch.full((m,), 1e-3 * fc / v_scale),
+                            ]
+                        ),
+                        "b": torch.full((m,), fc),
+                    }
+                )
     elif kind == "coulomb":
         variants.append({"fc": fc})
     elif kind == "stribeck":

@@ -262,6 +262,11 @@ class _RunLogger(EKFCallback):
         fit_txt = ", ".join(
             f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
         )
+        if record.rolled_back:
+            self.say(
+                f"\r  pass {record.index} lowered the innovation log-likelihood "
+                f"({record.loglik:.6g}): undone, keeping pass {record.index - 1}; stopping\n"
+            )
         self.say(
             f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {record.seconds:.1f} s: "
             f"inertia {record.parameters['inertia']:.6g}, Δθ {record.rel_change:.2e}"

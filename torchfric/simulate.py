@@ -116,7 +116,7 @@ def simulate(
         raise TorchfricError("t must be strictly increasing")
     if theta is not None and theta.shape[-1] != model.num_parameters:
         raise TorchfricError(
-            f"theta has {theta.shape[-1]} entries but the model has {model.num_parameters} "
+            f"theta has {theta.shape[-1]} entries but this model has {model.num_parameters} "
             f"({', '.join(model.theta_names)})"
         )
     if substeps == "auto":
