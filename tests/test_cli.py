@@ -225,3 +225,36 @@ def test_module_entry_point_help() -> None:
         check=True,
     )
     assert "--resume" in out.stdout and "--set" in out.stdout
+
+
+def test_killed_run_leaves_loadable_snapshots_and_resumes(
+    trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
+) -> None:
+    """SIGKILL a real `torchfric train` process once its first pass snapshot exists: every file it
+    left loads, and --resume reaches the uninterrupted run's θ."""
+    import os
+    import signal
+    import time
+
+    cfg = _config(tmp_path, name="short")  # same settings as the fixture's run
+    run = tmp_path / "runs" / "short"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "torchfric", "train", str(cfg), "--quiet", *SHORT],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    deadline = time.monotonic() + 240
+    while not (run / "passes" / "pass_001.pt").exists():
+        assert proc.poll() is None, "the run ended before its first snapshot"
+        assert time.monotonic() < deadline, "no snapshot within 240 s"
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    leftovers = [p.name for p in run.rglob("*.tmp")]
+    for snap in (run / "passes").glob("pass_*.pt"):
+        read_checkpoint(snap)  # every snapshot on disk is complete
+    assert main(["train", str(cfg), "--quiet", *SHORT, "--resume", str(run)]) == 0
+    resumed = read_checkpoint(tmp_path / "checkpoints" / "short.pt")
+    original = read_checkpoint(trained["run"] / "passes" / "pass_002.pt")
+    torch.testing.assert_close(resumed["theta"], original["theta"], rtol=0, atol=1e-12)
+    # A temp file can only be one the kill interrupted mid-write; it never replaces a snapshot.
+    assert all(name.startswith(".") for name in leftovers)
