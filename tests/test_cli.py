@@ -258,3 +258,23 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     torch.testing.assert_close(resumed["theta"], original["theta"], rtol=0, atol=1e-12)
     # A temp file can only be one the kill interrupted mid-write; it never replaces a snapshot.
     assert all(name.startswith(".") for name in leftovers)
+
+
+def test_fresh_run_clears_an_earlier_runs_snapshots(
+    trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
+) -> None:
+    import shutil
+
+    cfg = _config(tmp_path, name="short")
+    run = tmp_path / "runs" / "short"
+    (run / "passes").mkdir(parents=True)
+    shutil.copy(trained["run"] / "passes" / "pass_002.pt", run / "passes" / "pass_009.pt")
+    (run / "events.out.tfevents.0.stale").write_bytes(b"")
+    assert (
+        main(
+            ["train", str(cfg), "--quiet", "--set", "data.stop=1500", "--set", "estimator.passes=1"]
+        )
+        == 0
+    )
+    assert sorted(p.name for p in (run / "passes").iterdir()) == ["pass_001.pt"]
+    assert not (run / "events.out.tfevents.0.stale").exists()

@@ -140,7 +140,7 @@ def initial_model(cfg: Config, train: list[Experiment]) -> tuple[ArmModel, str]:
 
 
 # -- figures -------------------------------------------------------------------------------------
-def friction_figure(model: ArmModel, v_max: float, title: str) -> Any:
+def friction_figure(model: ArmModel, v_max: float, title: str, unit: str = "rad") -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -151,15 +151,21 @@ def friction_figure(model: ArmModel, v_max: float, title: str) -> Any:
         f = model.friction_torque(v)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(v.numpy(), f.numpy())
-    ax.set_xlabel("velocity q̇")
-    ax.set_ylabel("friction b·q̇ + C(q̇) + offset")
+    force = "N" if unit in ("m", "mm") else "N m"
+    ax.set_xlabel(f"velocity q̇ [{_si(unit)}/s]")
+    ax.set_ylabel(f"friction b·q̇ + C(q̇) + offset [{force}]")
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     return fig
 
 
-def response_figure(exp: Experiment, score: SimulationScore) -> Any:
+def _si(unit: str) -> str:
+    """The unit positions are converted to (data.position_unit → SI)."""
+    return "m" if unit in ("m", "mm") else "rad"
+
+
+def response_figure(exp: Experiment, score: SimulationScore, unit: str = "rad") -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -169,11 +175,11 @@ def response_figure(exp: Experiment, score: SimulationScore) -> Any:
     fig, ax = plt.subplots(2, 1, figsize=(8, 5), sharex=True)
     ax[0].plot(t, exp.q.numpy(), label="measured")
     ax[0].plot(t, score.states[:, 0].numpy(), "--", label="simulated")
-    ax[0].set_ylabel("q")
+    ax[0].set_ylabel(f"q [{_si(unit)}]")
     ax[0].legend(loc="best")
     ax[1].plot(t, exp.qdot.numpy(), label="reconstructed")
     ax[1].plot(t, score.states[:, 1].numpy(), "--", label="simulated")
-    ax[1].set_ylabel("q̇")
+    ax[1].set_ylabel(f"q̇ [{_si(unit)}/s]")
     ax[1].set_xlabel("t [s]")
     ax[0].set_title(f"{exp.name}: FIT q {score.fit_q:.1f} %, q̇ {score.fit_qdot:.1f} %")
     fig.tight_layout()
@@ -235,7 +241,7 @@ class _RunLogger(EKFCallback):
             self.writer.add_scalar(key, value, step)
         fits: dict[str, dict[str, float]] = {}
         self.writer.add_figure(
-            "friction_curve", friction_figure(model, self.v_max, f"pass {step}"), step
+            "friction_curve", friction_figure(model, self.v_max, f"pass {step}", self.cfg.data.position_unit), step
         )
         for e, score in zip(
             self.validation, evaluate_model(model, self.validation, self.cfg).values(), strict=True
@@ -243,7 +249,7 @@ class _RunLogger(EKFCallback):
             fits[e.name] = score.to_dict()
             self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
             self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
-            self.writer.add_figure(f"validation/{e.name}", response_figure(e, score), step)
+            self.writer.add_figure(f"validation/{e.name}", response_figure(e, score, self.cfg.data.position_unit), step)
         self.writer.flush()
         return fits
 
@@ -342,6 +348,15 @@ def train(
                 f"--resume: the config differs from the one saved in {run}; resume with the same config and --set values"
             )
     run.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        # A fresh run owns its directory: stale snapshots would be picked up by a later
+        # --resume, and old event files would mix two runs' curves in TensorBoard.
+        stale = [*(run / "passes").glob("pass_*.pt"), *run.glob("events.out.tfevents.*")]
+        stale += [f for f in (run / "metrics.json", run / "last_good.pt") if f.exists()]
+        for f in stale:
+            f.unlink()
+        if stale:
+            say(f"  starting fresh in {run}: removed {len(stale)} file(s) of an earlier run (use --resume to continue one)")
     (run / "config.toml").write_text(cfg.to_toml())
     t_start = time.perf_counter()
     train_exps, val_exps, test_exps, fingerprints = load_data(cfg)
