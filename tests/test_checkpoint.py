@@ -290,3 +290,28 @@ def test_save_overwrites_and_refuses_directory(good: pathlib.Path) -> None:
     assert torch.equal(load_checkpoint(good).get_theta(), model.get_theta())
     with pytest.raises(TorchfricError, match="is a directory"):
         save_checkpoint(good.parent, payload(model))
+
+
+def test_underflowed_positive_parameter_round_trips(tmp_path) -> None:
+    """A log-stored parameter driven so low that exp() underflows to 0.0 still loads, exactly."""
+    from torchfric import ArmModel, PolytopicFriction
+    from torchfric.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
+
+    arm = ArmModel(PolytopicFriction(3), viscous=0.01, c_m=16.0)
+    theta = arm.get_theta()
+    theta[arm.theta_names.index("viscous")] = -800.0  # exp(-800) == 0.0 in float64
+    theta[arm.theta_names.index("sigma2")] = -760.0
+    arm.set_theta(theta)
+    assert float(arm.viscous) == 0.0
+    payload = build_checkpoint(
+        arm,
+        config={},
+        estimator_state={},
+        metrics={},
+        data_fingerprints={},
+        name="x",
+        complete=True,
+    )
+    save_checkpoint(tmp_path / "x.pt", payload)
+    back = load_checkpoint(tmp_path / "x.pt")
+    torch.testing.assert_close(back.get_theta(), theta, rtol=0, atol=0)

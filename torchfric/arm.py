@@ -269,9 +269,25 @@ class ArmModel(nn.Module):
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> ArmModel:
         f = spec["friction"]
-        values = {_FRICTION_ARG[f["kind"]].get(k, k.lower()): v for k, v in f["values"].items()}
+        # A log-stored parameter whose exp underflowed is stored as 0.0; rebuild it as the
+        # smallest positive double (callers with the exact θ, like load_checkpoint, set it after).
+        values = {
+            _FRICTION_ARG[f["kind"]].get(k, k.lower()): (
+                [max(x, _TINY) for x in v] if isinstance(v, list) else max(v, _TINY)
+            )
+            if k in _POSITIVE
+            else v
+            for k, v in f["values"].items()
+        }
         friction = make_friction(f["kind"], int(f["size"]), **f["kwargs"], **values)
-        arm = spec["arm"]
+        arm = {
+            k: (
+                max(v, _TINY)
+                if k in ("inertia", "viscous", "gravity", "c_m") and spec["log_positive"]
+                else v
+            )
+            for k, v in spec["arm"].items()
+        }
         return cls(
             friction,
             inertia=arm["inertia"],
@@ -283,6 +299,9 @@ class ArmModel(nn.Module):
             log_positive=spec["log_positive"],
         )
 
+
+_TINY = 5e-324  # smallest positive double
+_POSITIVE = {"sigma", "Fc", "Fs", "vs"}  # friction parameters stored as logarithms
 
 # Parameter-name → constructor-argument name, per friction kind (for from_spec).
 _FRICTION_ARG: dict[str, dict[str, str]] = {

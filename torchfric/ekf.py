@@ -26,6 +26,7 @@ loop (`run_pass`) and the iterative off-line identification (`identify_ekf`, in
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -269,7 +270,10 @@ def make_step(flow: Propagator, *, compile: bool = False) -> StepFn:
         if chosen:
             return chosen[0](*args)
         try:
-            out = compiled(*args)
+            with warnings.catch_warnings():
+                # Inductor's own deprecation notices are not the user's business.
+                warnings.simplefilter("ignore", FutureWarning)
+                out = compiled(*args)
             chosen.append(compiled)
         except Exception:  # noqa: BLE001 - any compiler failure means: use the eager step
             out = eager(*args)

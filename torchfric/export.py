@@ -8,6 +8,7 @@ sub-steps and exact zero-order hold as `torchfric.simulate`, so the outputs agre
 from __future__ import annotations
 
 import pathlib
+import warnings
 from typing import Any
 
 import torch
@@ -120,7 +121,11 @@ def export_model(
         steps = substeps
     else:
         raise TorchfricError(f"substeps must be a positive integer or 'auto', got {substeps!r}")
-    return torch.jit.script(ExportedArm(model, steps))
+    with warnings.catch_warnings():
+        # TorchScript is deprecated upstream but is still the format that loads without the
+        # defining Python code (torch.export needs the class importable to re-trace).
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return torch.jit.script(ExportedArm(model, steps))
 
 
 def save_exported(module: Any, path: str | pathlib.Path) -> None:
@@ -130,5 +135,7 @@ def save_exported(module: Any, path: str | pathlib.Path) -> None:
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    torch.jit.save(module, str(tmp))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.jit.save(module, str(tmp))
     os.replace(tmp, path)

@@ -7,7 +7,6 @@ progress, snapshots and the final checkpoint through `EKFCallback`.
 from __future__ import annotations
 
 import json
-import math
 import pathlib
 import sys
 import time
@@ -241,7 +240,9 @@ class _RunLogger(EKFCallback):
             self.writer.add_scalar(key, value, step)
         fits: dict[str, dict[str, float]] = {}
         self.writer.add_figure(
-            "friction_curve", friction_figure(model, self.v_max, f"pass {step}", self.cfg.data.position_unit), step
+            "friction_curve",
+            friction_figure(model, self.v_max, f"pass {step}", self.cfg.data.position_unit),
+            step,
         )
         for e, score in zip(
             self.validation, evaluate_model(model, self.validation, self.cfg).values(), strict=True
@@ -249,7 +250,9 @@ class _RunLogger(EKFCallback):
             fits[e.name] = score.to_dict()
             self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
             self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
-            self.writer.add_figure(f"validation/{e.name}", response_figure(e, score, self.cfg.data.position_unit), step)
+            self.writer.add_figure(
+                f"validation/{e.name}", response_figure(e, score, self.cfg.data.position_unit), step
+            )
         self.writer.flush()
         return fits
 
@@ -274,7 +277,8 @@ class _RunLogger(EKFCallback):
                 f"({record.loglik:.6g}): undone, keeping pass {record.index - 1}; stopping\n"
             )
         self.say(
-            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {record.seconds:.1f} s: "
+            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {record.seconds:.1f} s "
+            f"({record.samples / max(record.seconds, 1e-9):,.0f} samples/s): "
             f"inertia {record.parameters['inertia']:.6g}, Δθ {record.rel_change:.2e}"
             + (f", {fit_txt}" if fit_txt else "")
             + "\n"
@@ -356,7 +360,9 @@ def train(
         for f in stale:
             f.unlink()
         if stale:
-            say(f"  starting fresh in {run}: removed {len(stale)} file(s) of an earlier run (use --resume to continue one)")
+            say(
+                f"  starting fresh in {run}: removed {len(stale)} file(s) of an earlier run (use --resume to continue one)"
+            )
     (run / "config.toml").write_text(cfg.to_toml())
     t_start = time.perf_counter()
     train_exps, val_exps, test_exps, fingerprints = load_data(cfg)
@@ -450,7 +456,3 @@ def train(
         return TrainResult(final, run, ckpt, metrics, result.history)
     finally:
         writer.close()
-
-
-def _finite(x: float) -> bool:
-    return math.isfinite(x)
