@@ -194,7 +194,8 @@ def test_generate_writes_rig_files(
         (["--set", "model.friction=spline"], "friction"),
         (["--set", "data.train=missing.csv"], "missing.csv"),
         (["--set", "model.size=4", "--set", "model.friction=polytopic"], "odd"),
-        (["--set", "estimator.method=output_error"], "output_error"),
+        (["--set", "estimator.method=output_error", "--set", "estimator.lr_final=1.0"], "lr_final"),
+        (["--set", "estimator.schedule=[50, 1]"], "schedule"),
     ],
 )
 def test_bad_input_is_one_line_error(
@@ -278,3 +279,29 @@ def test_fresh_run_clears_an_earlier_runs_snapshots(
     )
     assert sorted(p.name for p in (run / "passes").iterdir()) == ["pass_001.pt"]
     assert not (run / "events.out.tfevents.0.stale").exists()
+
+
+def test_output_error_run_warm_started_from_the_ekf(
+    trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
+) -> None:
+    """EKF first, then output-error polish: runs end to end, logs epochs, says both estimators."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = _config(tmp_path, name="polish")
+    args = [
+        "--set", f"model.init={trained['ckpt']}", "--set", "estimator.method=output_error",
+        "--set", "estimator.epochs=4", "--set", "estimator.window=50", "--set", "estimator.batch=8",
+        "--set", "estimator.eval_every=2", "--set", "data.stop=1500", "--set", "data.test=[]",
+    ]  # fmt: skip
+    assert main(["train", str(cfg), "--quiet", *args]) == 0
+    run = tmp_path / "runs" / "polish"
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["estimator"] == "ekf+output_error"
+    assert metrics["epochs"] >= 1 and "fit_q" in metrics["validation"]["validation"]
+    raw = read_checkpoint(tmp_path / "checkpoints" / "polish.pt")
+    assert raw["estimator"]["state"]["method"] == "output_error"
+    acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
+    acc.Reload()
+    assert [e.step for e in acc.Scalars("oe/loss")] == [1, 2, 3, 4]
+    assert "parameters/inertia" in acc.Tags()["scalars"]
+    assert sorted(p.name for p in (run / "passes").glob("epoch_*.pt"))

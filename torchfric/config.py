@@ -47,6 +47,7 @@ from .ekf import MEASUREMENTS
 from .errors import TorchfricError
 from .friction import FRICTIONS
 from .identify import EKFTuning
+from .output_error import OETuning
 from .rig import EXPERIMENTS
 from .simulate import SOLVERS
 
@@ -407,8 +408,16 @@ class EstimatorConfig:
     rollback: bool = True
     epochs: int = 200
     lr: float = 0.01
-    window: int = 0
-    batch: int = 32
+    lr_final: float = 1e-4
+    window: int = 200
+    batch: int = 64
+    weights: tuple[float, ...] = (1.0, 1.0)
+    clip: float = 1.0
+    lbfgs_steps: int = 0
+    patience: int = 20
+    eval_every: int = 10
+    schedule: tuple[int, ...] = ()
+    adjoint: bool = False
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ()
 
@@ -440,8 +449,47 @@ class EstimatorConfig:
         c.boolean("rollback")
         c.integer("epochs", ge=1)
         c.number("lr", gt=0.0)
+        c.number("lr_final", gt=0.0)
         c.integer("window", ge=0)
         c.integer("batch", ge=1)
+        c.numbers("weights", length=2, ge=0.0)
+        c.number("clip", ge=0.0)
+        c.integer("lbfgs_steps", ge=0)
+        c.integer("patience", ge=1)
+        c.integer("eval_every", ge=1)
+        sched = self.schedule
+        if not isinstance(sched, list | tuple) or not all(
+            isinstance(v, int) and not isinstance(v, bool) and (v == 0 or v >= 2) for v in sched
+        ):
+            c.type_error(
+                "schedule",
+                sched,
+                "an array of window lengths (0 or >= 2), short to long",
+                [50, 200, 800],
+            )
+        c.set("schedule", tuple(int(v) for v in sched))
+        c.boolean("adjoint")
+        if self.method == "output_error":
+            self.oe_tuning().check(1)  # the estimator's own cross-field rules (lr_final <= lr, ...)
+
+    def oe_tuning(self, seed: int = 0) -> OETuning:
+        """The output-error settings as `torchfric.output_error.OETuning`."""
+        return OETuning(
+            epochs=self.epochs,
+            lr=self.lr,
+            lr_final=self.lr_final,
+            window=self.window,
+            batch=self.batch,
+            weights=self.weights,  # type: ignore[arg-type]
+            clip=self.clip,
+            lbfgs_steps=self.lbfgs_steps,
+            patience=self.patience,
+            eval_every=self.eval_every,
+            seed=seed,
+            substeps=self.substeps,
+            schedule=self.schedule,
+            adjoint=self.adjoint,
+        )
 
     def ekf_tuning(self) -> EKFTuning:
         """The EKF settings as `torchfric.identify.EKFTuning`."""

@@ -30,6 +30,7 @@ from .errors import DivergenceError, TorchfricError
 from .friction import make_friction
 from .identify import EKFCallback, EKFResult, PassRecord, identify_ekf
 from .metrics import SimulationScore, score_simulation
+from .output_error import EpochRecord, OECallback, OEResult, identify_output_error
 from .prefit import prefit
 
 __all__ = ["load_data", "initial_model", "train", "TrainResult", "evaluate_model"]
@@ -310,8 +311,159 @@ def _estimator_payload(result: EKFResult, pass_index: int) -> dict[str, Any]:
 
 
 def _latest_snapshot(run_dir: pathlib.Path) -> pathlib.Path | None:
-    snaps = sorted((run_dir / "passes").glob("pass_*.pt"))
+    snaps = sorted((run_dir / "passes").glob("pass_*.pt")) or sorted(
+        (run_dir / "passes").glob("epoch_*.pt")
+    )
     return snaps[-1] if snaps else None
+
+
+def _provenance(cfg: Config, init_kind: str) -> str:
+    """Which estimator(s) produced the model: this run's, after a warm start's chain."""
+    method = cfg.estimator.method
+    if init_kind.startswith("checkpoint:"):
+        raw = read_checkpoint(init_kind[len("checkpoint:") :])
+        before = raw.get("metrics", {}).get("estimator") or raw.get("estimator", {}).get("method")
+        if before:
+            return f"{before}+{method}"
+    return method
+
+
+def _run_ekf(
+    cfg: Config,
+    model: ArmModel,
+    train_exps: list[Experiment],
+    logger: _RunLogger,
+    est: dict[str, Any] | None,
+    run: pathlib.Path,
+    fingerprints: dict[str, str],
+):  # type: ignore[no-untyped-def]
+    start = None
+    if est is not None:
+        start = (est["theta"], est["P_theta"], [PassRecord(**r) for r in est["history"]])
+    try:
+        result = identify_ekf(
+            model, train_exps, cfg.estimator.ekf_tuning(), callback=logger, start=start
+        )
+    except DivergenceError as err:
+        last = err.last_good
+        if isinstance(last, EKFResult) and last.history:
+            payload = build_checkpoint(
+                last.model,
+                config=cfg,
+                estimator_state=_estimator_payload(last, last.passes),
+                metrics={"diverged": str(err)},
+                data_fingerprints=fingerprints,
+                name=cfg.name,
+                complete=False,
+            )
+            save_checkpoint(run / "last_good.pt", payload)
+            raise DivergenceError(
+                f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
+            ) from None
+        raise
+    extra = {
+        "passes": result.passes,
+        "converged": result.converged,
+        "samples_per_second": sum(r.samples for r in result.history)
+        / max(sum(r.seconds for r in result.history), 1e-9),
+    }
+    return result.model, _estimator_payload(result, result.passes), extra
+
+
+class _OELogger(OECallback):
+    """Output-error epochs to TensorBoard, the terminal and per-block snapshots."""
+
+    def __init__(self, base: _RunLogger) -> None:
+        self.base = base
+
+    def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
+        b = self.base
+        for name, value in record.parameters.items():
+            b.writer.add_scalar(f"parameters/{name}", value, record.index)
+        b.writer.add_scalar("oe/loss", record.loss, record.index)
+        b.writer.add_scalar("oe/lr", record.lr, record.index)
+        b.writer.add_scalar("oe/window", record.window, record.index)
+        if record.val_fit is not None:
+            for name, f in record.val_fit.items():
+                b.writer.add_scalar(f"validation/{name}/fit_q", f["fit_q"], record.index)
+                b.writer.add_scalar(f"validation/{name}/fit_qdot", f["fit_qdot"], record.index)
+            b.writer.add_figure(
+                "friction_curve",
+                friction_figure(
+                    result.model,
+                    b.v_max,
+                    f"epoch {record.index} (best {result.best_epoch})",
+                    b.cfg.data.position_unit,
+                ),
+                record.index,
+            )
+            fit_txt = ", ".join(
+                f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %"
+                for n, f in record.val_fit.items()
+            )
+            b.say(
+                f"  epoch {record.index}/{b.cfg.estimator.epochs}: loss {record.loss:.4g}, "
+                f"inertia {record.parameters['inertia']:.6g}"
+                + (f", {fit_txt}" if fit_txt else "")
+                + "\n"
+            )
+            payload = build_checkpoint(
+                result.model,
+                config=b.cfg,
+                estimator_state=_oe_payload(result, record.index),
+                metrics={"validation": record.val_fit, "init": getattr(b, "init_kind", "")},
+                data_fingerprints=b.fingerprints,
+                name=b.cfg.name,
+                complete=False,
+            )
+            save_checkpoint(b.run_dir / "passes" / f"epoch_{record.index:05d}.pt", payload)
+        b.writer.flush()
+        return None
+
+
+def _oe_payload(result: OEResult, epoch: int) -> dict[str, Any]:
+    state: dict[str, Any] = {
+        "method": "output_error",
+        "epoch": epoch,
+        "theta": result.theta.clone(),
+        "best_epoch": result.best_epoch,
+        "history": [r.to_dict() for r in result.history],
+    }
+    if result.optimizer_state is not None:
+        state["optimizer_state"] = result.optimizer_state
+    return state
+
+
+def _run_output_error(
+    cfg: Config,
+    model: ArmModel,
+    train_exps: list[Experiment],
+    val_exps: list[Experiment],
+    logger: _RunLogger,
+    est: dict[str, Any] | None,
+    run: pathlib.Path,
+    fingerprints: dict[str, str],
+):  # type: ignore[no-untyped-def]
+    start = None
+    if est is not None:
+        history = [
+            EpochRecord(**{k: v for k, v in r.items() if k != "val_score"}) for r in est["history"]
+        ]
+        start = (est["theta"], history, est.get("optimizer_state"))
+    result = identify_output_error(
+        model,
+        train_exps,
+        cfg.estimator.oe_tuning(cfg.seed),
+        validation=val_exps or None,
+        callback=_OELogger(logger),
+        start=start,
+    )
+    extra = {
+        "epochs": result.epochs,
+        "best_epoch": result.best_epoch,
+        "stopped_early": result.stopped_early,
+    }
+    return result.model, _oe_payload(result, result.epochs), extra
 
 
 def train(
@@ -332,14 +484,8 @@ def train(
             sys.stderr.write(msg if msg.startswith("\r") or msg.endswith("\n") else msg + "\n")
             sys.stderr.flush()
 
-    if cfg.estimator.method != "ekf":
-        raise TorchfricError(
-            f"estimator.method = {cfg.estimator.method!r} is not implemented in this version; "
-            "use estimator.method = 'ekf'"
-        )
     torch.manual_seed(cfg.seed)
     run = pathlib.Path(run_dir) if run_dir is not None else pathlib.Path(cfg.out_dir) / cfg.name
-    start = None
     if resume:
         snap = _latest_snapshot(run)
         if snap is None:
@@ -355,7 +501,7 @@ def train(
     if not resume:
         # A fresh run owns its directory: stale snapshots would be picked up by a later
         # --resume, and old event files would mix two runs' curves in TensorBoard.
-        stale = [*(run / "passes").glob("pass_*.pt"), *run.glob("events.out.tfevents.*")]
+        stale = [*(run / "passes").glob("*.pt"), *run.glob("events.out.tfevents.*")]
         stale += [f for f in (run / "metrics.json", run / "last_good.pt") if f.exists()]
         for f in stale:
             f.unlink()
@@ -380,12 +526,13 @@ def train(
         if resume:
             model = ArmModel.from_spec(saved["model"])
             est = saved["estimator"]["state"]
-            history = [PassRecord(**r) for r in est["history"]]
-            start = (est["theta"], est["P_theta"], history)
             model.set_theta(est["theta"])
             init_kind = saved["metrics"].get("init", "resume")
-            say(f"  resuming after pass {est['pass']}")
+            say(
+                f"  resuming after {'pass' if est['method'] == 'ekf' else 'epoch'} {est.get('pass', est.get('epoch'))}"
+            )
         else:
+            est = None
             model, init_kind = initial_model(cfg, train_exps)
             fits = logger.log_model(0, model, {})
             fit_txt = ", ".join(
@@ -395,41 +542,23 @@ def train(
                 f"  pass 0 ({init_kind}): inertia {float(model.inertia.detach()):.6g}"
                 + (f", {fit_txt}" if fit_txt else "")
             )
-        # The initial model for the EKF: start θ from the resumed/initial model.
-        try:
-            result = identify_ekf(
-                model, train_exps, cfg.estimator.ekf_tuning(), callback=logger, start=start
+        logger.init_kind = init_kind
+        if cfg.estimator.method == "ekf":
+            final, state, extra = _run_ekf(cfg, model, train_exps, logger, est, run, fingerprints)
+        else:
+            final, state, extra = _run_output_error(
+                cfg, model, train_exps, val_exps, logger, est, run, fingerprints
             )
-        except DivergenceError as err:
-            last = err.last_good
-            if isinstance(last, EKFResult) and last.history:
-                payload = build_checkpoint(
-                    last.model,
-                    config=cfg,
-                    estimator_state=_estimator_payload(last, last.passes),
-                    metrics={"diverged": str(err)},
-                    data_fingerprints=fingerprints,
-                    name=cfg.name,
-                    complete=False,
-                )
-                save_checkpoint(run / "last_good.pt", payload)
-                raise DivergenceError(
-                    f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
-                ) from None
-            raise
         seconds = time.perf_counter() - t_start
-        final = result.model
         metrics: dict[str, Any] = {
             "name": cfg.name,
-            "estimator": "ekf",
+            "estimator": _provenance(cfg, init_kind),
             "init": init_kind,
-            "passes": result.passes,
-            "converged": result.converged,
+            **extra,
             "seconds": seconds,
-            "samples_per_second": sum(r.samples for r in result.history)
-            / max(sum(r.seconds for r in result.history), 1e-9),
             "inertia": float(final.inertia.detach()),
             "parameters": final.physical_parameters(),
+            "dt": train_exps[0].dt,
             "validation": {},
             "test": {},
         }
@@ -441,7 +570,7 @@ def train(
         payload = build_checkpoint(
             final,
             config=cfg,
-            estimator_state=_estimator_payload(result, result.passes),
+            estimator_state=state,
             metrics=metrics,
             data_fingerprints=fingerprints,
             name=cfg.name,
@@ -449,10 +578,11 @@ def train(
         )
         save_checkpoint(ckpt, payload)
         say(
-            f"  done in {seconds:.1f} s: inertia {metrics['inertia']:.6g}; checkpoint {ckpt}; metrics {run / 'metrics.json'}"
+            f"  done in {seconds:.1f} s ({metrics['estimator']}): inertia {metrics['inertia']:.6g}; "
+            f"checkpoint {ckpt}; metrics {run / 'metrics.json'}"
         )
         for name, m in metrics["validation"].items():
             say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
-        return TrainResult(final, run, ckpt, metrics, result.history)
+        return TrainResult(final, run, ckpt, metrics, list(state.get("history", [])))
     finally:
         writer.close()

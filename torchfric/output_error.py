@@ -1,0 +1,564 @@
+"""Gradient output-error identification: minimise the open-loop simulation error by Adam (and an
+optional L-BFGS polish) through the solver (DESIGN.md, "Estimators" 2.).
+
+The same `ArmModel` and the same θ (estimation coordinates: log for positive parameters, so they
+stay positive) as the EKF. θ is trained as one leaf tensor passed to `simulate(..., theta=θ)`;
+the model itself is not modified.
+
+Loss (mean over windows b and samples k = 1 … W−1 of each window; sample 0 is the measured start)::
+
+    L(θ) = mean_{b,k} [ w_q ((q̂_bk − q_bk) / s_q)² + w_v ((q̂̇_bk − q̇_bk) / s_v)² ]
+
+with the scales ``s_q`` and ``s_v`` the standard deviations of the measured q and (reconstructed)
+q̇ over the training data, each experiment about its own mean (pooled). The loss is therefore
+unit-free, and over full-length simulations it is ``w_q (1 − FIT_q)² + w_v (1 − FIT_q̇)²`` up to
+the data's mean — the criterion the validation FIT measures.
+
+Horizons:
+
+- ``window = 0``: full-length simulation of every experiment from its measured initial state.
+- ``window = W ≥ 2`` (multiple shooting): every epoch draws `batch` windows of W samples at random
+  start indices over all experiments (seeded `torch.Generator`), each starting from the measured
+  state ``[q, q̇]`` at its start, and simulates them as ONE batch (`simulate` with `u (W, B)`,
+  `x0 (B, 2)`): per-op overhead dominates, so B windows cost about as much as one. Short windows
+  keep the loss surface free of the long-horizon local minima; `schedule` lengthens them in stages
+  (short to long, epochs split evenly).
+
+Gradients by backpropagation through the fixed-grid solver (default), or by the adjoint method
+(`torchdiffeq.odeint_adjoint`, memory independent of the horizon, about twice the time).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+from torchdiffeq import odeint_adjoint
+
+from .arm import ArmModel
+from .data import Experiment
+from .errors import DivergenceError, TorchfricError
+from .metrics import score_simulation
+from .simulate import _ZOHField, auto_substeps, sample_grid, simulate
+
+__all__ = ["OETuning", "EpochRecord", "OEResult", "OECallback", "identify_output_error"]
+
+_METHOD = "rk4"
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _bad(key: str, value: Any, allowed: str) -> TorchfricError:
+    return TorchfricError(f"{key} = {value!r} is invalid; allowed: {allowed}")
+
+
+@dataclass(frozen=True)
+class OETuning:
+    """Output-error training settings.
+
+    Attributes:
+        epochs: Adam epochs (one batch of windows, or one full-length pass, per epoch).
+        lr: initial Adam learning rate on θ in estimation coordinates.
+        lr_final: learning rate at the last epoch; cosine decay from `lr` (0 < lr_final <= lr).
+        window: samples per truncated window (multiple shooting); 0 = full length.
+        batch: windows per epoch, drawn at random start indices (seeded).
+        weights: loss weights ``(w_q, w_v)`` of the normalised q and q̇ errors.
+        clip: gradient-norm clipping threshold (0 = off).
+        lbfgs_steps: L-BFGS iterations after Adam on a fixed loss: full length when the last
+            window is 0, else every experiment tiled into non-overlapping windows of that length.
+        patience: early stop after this many validation evaluations without a better mean FIT.
+        eval_every: epochs between validation evaluations (and after the last epoch).
+        seed: window draws are a function of (seed, epoch) only (resumable, deterministic).
+        substeps: RK4 steps per sample interval, or "auto" (re-chosen every epoch from θ).
+        schedule: window lengths per stage, short to long; overrides `window`; epochs split
+            evenly over the stages (each entry >= 2, or 0 for full length).
+        adjoint: gradients by `torchdiffeq.odeint_adjoint` instead of backpropagation.
+    """
+
+    epochs: int = 200
+    lr: float = 1e-2
+    lr_final: float = 1e-4
+    window: int = 200
+    batch: int = 64
+    weights: tuple[float, float] = (1.0, 1.0)
+    clip: float = 1.0
+    lbfgs_steps: int = 0
+    patience: int = 20
+    eval_every: int = 10
+    seed: int = 0
+    substeps: int | str = 1
+    schedule: tuple[int, ...] = ()
+    adjoint: bool = False
+
+    def check(self, k: int) -> None:
+        """Validate against a model with k parameters; raises TorchfricError naming the key."""
+        if not _is_int(k) or k < 1:
+            raise _bad("k (number of parameters)", k, "an integer >= 1")
+        if not _is_int(self.epochs) or self.epochs < 1:
+            raise _bad("epochs", self.epochs, "an integer >= 1")
+        for key in ("lr", "lr_final"):
+            v = getattr(self, key)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise _bad(key, v, "a finite number > 0")
+        if self.lr_final > self.lr:
+            raise _bad("lr_final", self.lr_final, f"a number in (0, lr = {self.lr!r}]")
+        if not _is_int(self.window) or self.window < 0 or self.window == 1:
+            raise _bad("window", self.window, "0 (full length) or an integer >= 2 (samples)")
+        if not _is_int(self.batch) or self.batch < 1:
+            raise _bad("batch", self.batch, "an integer >= 1 (windows per epoch)")
+        w = tuple(self.weights)
+        if (
+            len(w) != 2
+            or not all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in w)
+            or sum(w) == 0
+        ):
+            raise _bad("weights", self.weights, "two finite numbers >= 0 (w_q, w_v), not both 0")
+        if not isinstance(self.clip, (int, float)) or not math.isfinite(self.clip) or self.clip < 0:
+            raise _bad("clip", self.clip, "a finite number >= 0 (0 = off)")
+        if not _is_int(self.lbfgs_steps) or self.lbfgs_steps < 0:
+            raise _bad("lbfgs_steps", self.lbfgs_steps, "an integer >= 0 (0 = no polish)")
+        if not _is_int(self.patience) or self.patience < 1:
+            raise _bad("patience", self.patience, "an integer >= 1 (validation evaluations)")
+        if not _is_int(self.eval_every) or self.eval_every < 1:
+            raise _bad("eval_every", self.eval_every, "an integer >= 1 (epochs)")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise _bad("seed", self.seed, "an integer >= 0")
+        if self.substeps != "auto" and (not _is_int(self.substeps) or self.substeps < 1):
+            raise _bad("substeps", self.substeps, "an integer >= 1 or 'auto'")
+        s = tuple(self.schedule)
+        if not all(_is_int(x) and (x == 0 or x >= 2) for x in s) or len(s) > self.epochs:
+            raise _bad(
+                "schedule",
+                self.schedule,
+                f"at most epochs = {self.epochs} window lengths, each 0 (full length) or >= 2",
+            )
+        if not isinstance(self.adjoint, bool):
+            raise _bad("adjoint", self.adjoint, "true or false")
+
+    def window_at(self, epoch: int) -> int:
+        """Window length of (1-based) `epoch`: the schedule's stage, else `window`."""
+        if not self.schedule:
+            return self.window
+        stage = (epoch - 1) * len(self.schedule) // self.epochs
+        return self.schedule[stage]
+
+    def lr_at(self, epoch: int) -> float:
+        """Cosine decay ``lr_final + ½ (lr − lr_final)(1 + cos(π (e−1)/(E−1)))``, e = 1 … E."""
+        if self.epochs == 1:
+            return self.lr
+        frac = (epoch - 1) / (self.epochs - 1)
+        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * frac))
+
+
+@dataclass
+class EpochRecord:
+    """Diagnostics of one epoch (index `epochs + 1` is the L-BFGS polish, with lr = 1)."""
+
+    index: int  # 1-based epoch number
+    loss: float  # training loss of this epoch's batch, before the step
+    parameters: dict[str, float]  # physical values by name, after the step
+    lr: float
+    seconds: float
+    val_fit: dict[str, dict[str, float]] | None  # {name: {"fit_q", "fit_qdot"}} when evaluated
+    theta: list[float] = field(default_factory=list)  # estimation coordinates, after the step
+    window: int = 0  # window length of this epoch (0 = full length)
+
+    @property
+    def val_score(self) -> float | None:
+        """Mean over validation experiments of (FIT_q + FIT_q̇) / 2, or None."""
+        if not self.val_fit:
+            return None
+        vals = [0.5 * (v["fit_q"] + v["fit_qdot"]) for v in self.val_fit.values()]
+        return sum(vals) / len(vals)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class OEResult:
+    """What `identify_output_error` returns (also `DivergenceError.last_good`)."""
+
+    model: ArmModel  # fitted copy (θ = `theta`)
+    theta: Tensor  # (k,) estimation coordinates: best by validation, else the last
+    history: list[EpochRecord] = field(default_factory=list)
+    best_epoch: int = 0  # epoch whose θ is returned (0 = the initial guess)
+    stopped_early: bool = False  # patience ran out or the callback asked to stop
+    optimizer_state: dict[str, Any] | None = None  # Adam state after the last epoch (resume)
+
+    @property
+    def epochs(self) -> int:
+        return len(self.history)
+
+
+class OECallback:
+    """Hooks the runner attaches (TensorBoard, progress, checkpoints). Defaults do nothing."""
+
+    def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
+        """Called after each epoch; return False to stop after this epoch."""
+        return None
+
+
+@dataclass
+class _Data:
+    """Training tensors of one experiment: `u (N,)`, measured `y (N, 2)` = [q, q̇]."""
+
+    t: Tensor
+    u: Tensor
+    y: Tensor
+    dt: float
+
+
+def _prepare(exps: Sequence[Experiment], what: str) -> list[_Data]:
+    out = []
+    for e in exps:
+        if not isinstance(e, Experiment):
+            raise TorchfricError(f"{what} must be Experiment objects, got {type(e).__name__}")
+        if e.qdot is None:
+            raise TorchfricError(
+                f"experiment {e.name!r} has no velocity, but output-error training needs q̇ for "
+                "the measured initial states and the q̇ loss; reconstruct it first "
+                "(Experiment.with_velocity())"
+            )
+        y = torch.stack([e.q, e.qdot], dim=-1).to(torch.float64)
+        out.append(_Data(e.t.to(torch.float64), e.u.to(torch.float64), y, e.dt))
+    return out
+
+
+def _scales(data: Sequence[_Data]) -> Tensor:
+    """`(2,)` pooled standard deviations of measured [q, q̇], each experiment about its mean."""
+    ss = sum(((d.y - d.y.mean(0)) ** 2).sum(0) for d in data)
+    n = sum(d.y.shape[0] for d in data)
+    s = (ss / n).sqrt()
+    if not bool((s > 0).all()):
+        raise TorchfricError(
+            f"the training data have a constant q or q̇ (std = {s.tolist()}); output-error "
+            "training needs motion in the data"
+        )
+    return s
+
+
+def _substeps(model: ArmModel, theta: Tensor, dt: float, substeps: int | str) -> int:
+    if substeps != "auto":
+        return int(substeps)
+    with torch.no_grad():
+        probe = ArmModel.from_spec(model.spec()).set_theta(theta.detach())
+        return auto_substeps(probe, dt, _METHOD)
+
+
+def _rollout(
+    model: ArmModel, t: Tensor, u: Tensor, x0: Tensor, theta: Tensor, steps: int, adjoint: bool
+) -> Tensor:
+    """Simulate `u (N[, B])` from `x0 ([B,] 2)` with parameters θ → `(N, [B,] 2)`."""
+    if not adjoint:
+        return simulate(model, t, u, x0, method=_METHOD, substeps=steps, theta=theta)
+    # Same exact-ZOH field as `simulate`; the grid is built per call from the requested times, so
+    # the adjoint's backward integration over [t_i, t_{i−1}] gets its own sub-step grid.
+    fieldfn = _ZOHField(model, t, u, theta)
+    options = {"grid_constructor": lambda _f, _y0, tt: sample_grid(tt, steps), "perturb": True}
+    return odeint_adjoint(fieldfn, x0, t, method=_METHOD, options=options, adjoint_params=(theta,))
+
+
+def _loss(sim: Tensor, y: Tensor, scale: Tensor, weights: Tensor) -> Tensor:
+    """Mean of ``Σ_c w_c ((ŷ_c − y_c) / s_c)²`` over all samples but the first (the start)."""
+    e = (sim[1:] - y[1:]) / scale
+    return (e * e * weights).sum(-1).mean()
+
+
+def _draw(data: Sequence[_Data], window: int, batch: int, gen: torch.Generator) -> list[tuple]:
+    """`batch` (experiment, start) pairs, uniform over every valid window start."""
+    counts = [max(d.y.shape[0] - window + 1, 0) for d in data]
+    total = sum(counts)
+    if total == 0:
+        longest = max(d.y.shape[0] for d in data)
+        raise TorchfricError(
+            f"window = {window} samples is longer than every experiment (longest {longest}); "
+            "lower window or use 0 for full-length simulation"
+        )
+    flat = torch.randint(total, (batch,), generator=gen).tolist()
+    edges = np.cumsum([0, *counts])
+    out = []
+    for f in flat:
+        i = int(np.searchsorted(edges, f, side="right") - 1)
+        out.append((i, int(f - edges[i])))
+    return out
+
+
+def _tiles(data: Sequence[_Data], window: int) -> list[tuple]:
+    """Every experiment cut into non-overlapping windows of `window` samples (fixed loss)."""
+    return [
+        (i, s) for i, d in enumerate(data) for s in range(0, d.y.shape[0] - window + 1, window - 1)
+    ]
+
+
+def _window_loss(
+    model: ArmModel,
+    data: Sequence[_Data],
+    picks: Sequence[tuple],
+    window: int,
+    theta: Tensor,
+    steps: int,
+    scale: Tensor,
+    weights: Tensor,
+    adjoint: bool,
+) -> Tensor:
+    """Loss over the windows `picks` = [(experiment, start)], simulated as one batch."""
+    u = torch.stack([data[i].u[s : s + window] for i, s in picks], dim=1)  # (W, B)
+    y = torch.stack([data[i].y[s : s + window] for i, s in picks], dim=1)  # (W, B, 2)
+    t = torch.arange(window, dtype=torch.float64) * data[picks[0][0]].dt
+    sim = _rollout(model, t, u, y[0], theta, steps, adjoint)
+    return _loss(sim, y, scale, weights)
+
+
+def _full_loss(
+    model: ArmModel,
+    data: Sequence[_Data],
+    theta: Tensor,
+    steps: int,
+    scale: Tensor,
+    weights: Tensor,
+    adjoint: bool,
+) -> Tensor:
+    """Sample-weighted loss of full-length simulations of every experiment."""
+    total = sum(d.y.shape[0] - 1 for d in data)
+    out = theta.new_zeros(())
+    for d in data:
+        sim = _rollout(model, d.t, d.u, d.y[0], theta, steps, adjoint)
+        out = out + _loss(sim, d.y, scale, weights) * ((d.y.shape[0] - 1) / total)
+    return out
+
+
+def _generator(seed: int, epoch: int) -> torch.Generator:
+    """The window draws of `epoch` depend on (seed, epoch) only: resuming repeats them."""
+    state = np.random.SeedSequence([seed, epoch]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+def identify_output_error(
+    model: ArmModel,
+    experiments: Experiment | Sequence[Experiment],
+    tuning: OETuning | None = None,
+    *,
+    validation: Experiment | Sequence[Experiment] | None = None,
+    callback: OECallback | None = None,
+    start: tuple[Tensor, list[EpochRecord], dict[str, Any] | None] | None = None,
+) -> OEResult:
+    """Identify θ of `model` by minimising the simulation error (module docstring).
+
+    Args:
+        model: the arm; its current θ is the initial guess (not modified) — e.g. an EKF result's
+            model for "EKF first, then polish".
+        experiments: training experiments with `qdot` (measured or reconstructed). Windows of one
+            batch share one time grid: all experiments must have the same sample step.
+        tuning: `OETuning`.
+        validation: experiments for early stopping on the mean validation FIT (q and q̇), each
+            simulated open loop from its measured initial state; the best θ is returned.
+        callback: `OECallback` per epoch.
+        start: resume from ``(θ, history, optimizer_state)`` of completed epochs (`OEResult`'s
+            `theta`, `history`, `optimizer_state`); equals an uninterrupted run.
+
+    Returns:
+        `OEResult`: fitted copy of the model, θ, per-epoch `EpochRecord`s, best epoch.
+
+    Raises:
+        TorchfricError: bad tuning or data. DivergenceError: a non-finite loss or gradient;
+            `.last_good` holds the result before that epoch.
+    """
+    tuning = tuning or OETuning()
+    k = model.num_parameters
+    tuning.check(k)
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    if not exps:
+        raise TorchfricError("identify_output_error needs at least one training experiment")
+    vals = [validation] if isinstance(validation, Experiment) else list(validation or [])
+    data = _prepare(exps, "experiments")
+    _prepare(vals, "validation experiments")  # the same q̇ check, before any training
+    dts = [d.dt for d in data]
+    if max(dts) - min(dts) > 1e-6 * max(dts):
+        raise TorchfricError(
+            f"training experiments have different sample steps {sorted(set(dts))}; windows are "
+            "simulated on one time grid, so resample them to one step"
+        )
+    for w in (*tuning.schedule, tuning.window):
+        if w > 0 and w > max(d.y.shape[0] for d in data):
+            raise _bad("window", w, f"0 or 2 … {max(d.y.shape[0] for d in data)} (samples)")
+    callback = callback or OECallback()
+    scale = _scales(data)
+    weights = torch.tensor(tuple(tuning.weights), dtype=torch.float64)
+    names = _unique([e.name for e in vals])
+
+    if start is not None:
+        theta0, history, opt_state = start[0], list(start[1]), start[2]
+    else:
+        theta0, history, opt_state = model.get_theta(), [], None
+    theta = torch.nn.Parameter(torch.as_tensor(theta0, dtype=torch.float64).detach().clone())
+    if theta.numel() != k:
+        raise TorchfricError(f"start theta has {theta.numel()} entries, the model has {k}")
+    opt = torch.optim.Adam([theta], lr=tuning.lr)
+    if opt_state is not None:
+        opt.load_state_dict(opt_state)
+    work = copy.deepcopy(model)
+
+    def validate(th: Tensor) -> dict[str, dict[str, float]] | None:
+        if not vals:
+            return None
+        work.set_theta(th.detach())
+        steps = _substeps(model, th, vals[0].dt, tuning.substeps)
+        out = {}
+        for name, e in zip(names, vals, strict=True):
+            s = score_simulation(work, e, method=_METHOD, substeps=steps)
+            out[name] = {"fit_q": s.fit_q, "fit_qdot": s.fit_qdot}
+        return out
+
+    # Best θ so far: by validation score when validating, else simply the latest.
+    best_epoch, best_theta, best_score, since = 0, theta.detach().clone(), -math.inf, 0
+    for r in history:
+        if r.val_score is not None:
+            if r.val_score > best_score:
+                best_epoch, best_theta, best_score, since = (
+                    r.index,
+                    torch.tensor(r.theta),
+                    r.val_score,
+                    0,
+                )
+            else:
+                since += 1
+    if not vals and history:
+        best_epoch = history[-1].index
+    if vals and not history:
+        fit0 = validate(theta)
+        best_score = EpochRecord(0, math.nan, {}, 0.0, 0.0, fit0).val_score or -math.inf
+
+    def result(stopped: bool) -> OEResult:
+        th = best_theta if vals else theta.detach().clone()
+        fitted = copy.deepcopy(model).set_theta(th)
+        return OEResult(
+            fitted, th.clone(), list(history), best_epoch, stopped, copy.deepcopy(opt.state_dict())
+        )
+
+    def record(index, loss, lr, t0, window, force_eval=False) -> EpochRecord:
+        th = theta.detach().clone()
+        fit = validate(th) if (force_eval or index % tuning.eval_every == 0) else None
+        return EpochRecord(
+            index=index,
+            loss=loss,
+            parameters=dict(zip(model.theta_names, model.to_physical(th).tolist(), strict=True)),
+            lr=lr,
+            seconds=time.perf_counter() - t0,
+            val_fit=fit,
+            theta=th.tolist(),
+            window=window,
+        )
+
+    stopped = since >= tuning.patience if vals else False
+    for epoch in range(len(history) + 1, tuning.epochs + 1):
+        if stopped:
+            break
+        t0 = time.perf_counter()
+        window = tuning.window_at(epoch)
+        lr = tuning.lr_at(epoch)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        steps = _substeps(model, theta, dts[0], tuning.substeps)
+        opt.zero_grad()
+        if window == 0:
+            loss = _full_loss(model, data, theta, steps, scale, weights, tuning.adjoint)
+        else:
+            picks = _draw(data, window, tuning.batch, _generator(tuning.seed, epoch))
+            loss = _window_loss(
+                model, data, picks, window, theta, steps, scale, weights, tuning.adjoint
+            )
+        loss.backward()
+        if not (torch.isfinite(loss) and bool(torch.isfinite(theta.grad).all())):
+            raise DivergenceError(
+                f"output-error training diverged in epoch {epoch} (window {window}): loss = "
+                f"{float(loss):.4g}, gradient finite = {bool(torch.isfinite(theta.grad).all())}. "
+                "Fix: lower lr, use shorter windows, more substeps, or a better start "
+                "(model.init = 'prefit' or an EKF result); the last good parameters are kept",
+                last_good=result(False),
+            )
+        if tuning.clip > 0:
+            torch.nn.utils.clip_grad_norm_([theta], tuning.clip)
+        opt.step()
+        rec = record(epoch, float(loss.detach()), lr, t0, window, epoch == tuning.epochs)
+        history.append(rec)
+        if rec.val_score is not None:
+            if rec.val_score > best_score:
+                best_epoch, best_theta, best_score, since = (
+                    epoch,
+                    theta.detach().clone(),
+                    rec.val_score,
+                    0,
+                )
+            else:
+                since += 1
+                stopped = since >= tuning.patience
+        if not vals:
+            best_epoch = epoch
+        if callback.on_epoch_end(rec, result(stopped)) is False:
+            stopped = True
+            break
+
+    if tuning.lbfgs_steps > 0 and not stopped and len(history) == tuning.epochs:
+        t0 = time.perf_counter()
+        if vals:  # polish from the best θ by validation
+            with torch.no_grad():
+                theta.copy_(best_theta)
+        window = tuning.window_at(tuning.epochs)
+        steps = _substeps(model, theta, dts[0], tuning.substeps)
+        picks = _tiles(data, window) if window else []
+        lbfgs = torch.optim.LBFGS(
+            [theta],
+            lr=1.0,
+            max_iter=tuning.lbfgs_steps,
+            tolerance_grad=1e-12,
+            tolerance_change=1e-15,
+            line_search_fn="strong_wolfe",
+        )
+
+        def closure() -> Tensor:
+            lbfgs.zero_grad()
+            if window == 0:
+                f = _full_loss(model, data, theta, steps, scale, weights, tuning.adjoint)
+            else:
+                f = _window_loss(
+                    model, data, picks, window, theta, steps, scale, weights, tuning.adjoint
+                )
+            f.backward()
+            return f
+
+        before = float(closure().detach())
+        theta_before = theta.detach().clone()
+        lbfgs.step(closure)
+        after = float(closure().detach())
+        if not math.isfinite(after) or after > before:
+            with torch.no_grad():
+                theta.copy_(theta_before)
+            after = before
+        rec = record(tuning.epochs + 1, after, 1.0, t0, window, force_eval=True)
+        history.append(rec)
+        if rec.val_score is not None and rec.val_score > best_score:
+            best_epoch, best_theta, best_score = rec.index, theta.detach().clone(), rec.val_score
+        if not vals:
+            best_epoch = rec.index
+        callback.on_epoch_end(rec, result(False))
+    return result(stopped)
+
+
+def _unique(names: Sequence[str]) -> list[str]:
+    """Validation names made unique (``name``, ``name#2`` …) for the `val_fit` keys."""
+    seen: dict[str, int] = {}
+    out = []
+    for n in names:
+        seen[n] = seen.get(n, 0) + 1
+        out.append(n if seen[n] == 1 else f"{n}#{seen[n]}")
+    return out
