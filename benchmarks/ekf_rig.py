@@ -1,7 +1,7 @@
 """EKF on the synthetic rig: accuracy against the truth and filter speed. Prints a table.
 
     python benchmarks/ekf_rig.py                      # train both models (paper tuning), then score
-    python benchmarks/ekf_rig.py --from-checkpoints   # score checkpoints/arm_{tanh,polytopic}_ekf.pt
+    python benchmarks/ekf_rig.py --from-checkpoints   # score checkpoints/arm_{tanh,polytopic}_{ekf,oe,ekf_oe}.pt
     python benchmarks/ekf_rig.py --speed-only         # only the steps/s section
 
 Accuracy targets (issue 3): inertia within 1 % of the truth, validation FIT >= 95 % on q and q̇,
@@ -52,7 +52,7 @@ def accuracy(models: dict[str, tuple[ArmModel, dict]]) -> list[dict]:
                 "extra_fit_q": se.fit_q,
                 "extra_fit_qdot": se.fit_qdot,
                 "friction_err_%": 100 * friction_curve_error(model, v, ref),
-                "passes": meta.get("passes"),
+                "passes": meta.get("passes") or meta.get("epochs"),
                 "seconds": meta.get("seconds"),
             }
         )
@@ -115,10 +115,12 @@ def main() -> None:
     out: dict[str, list[dict]] = {}
     if not args.speed_only:
         models = {}
-        for kind in ("tanh", "polytopic"):
-            name = f"arm_{kind}_ekf"
+        names = [f"arm_{k}_{m}" for k in ("tanh", "polytopic") for m in ("ekf", "oe", "ekf_oe")]
+        for name in names if args.from_checkpoints else ["arm_tanh_ekf", "arm_polytopic_ekf"]:
             if args.from_checkpoints:
                 ckpt = ROOT / "checkpoints" / f"{name}.pt"
+                if not ckpt.exists():
+                    continue  # score the reference checkpoints that have been produced
                 raw = torch.load(ckpt, weights_only=True)
                 models[name] = (load_checkpoint(ckpt), raw["metrics"])
             else:
@@ -132,7 +134,7 @@ def main() -> None:
         out["accuracy"] = accuracy(models)
         print(
             f"{'model':<20}{'M':>10}{'M err %':>9}{'val FIT q':>11}{'val FIT q̇':>11}"
-            f"{'extr FIT q':>12}{'extr FIT q̇':>12}{'fric err %':>11}{'passes':>8}{'time s':>8}"
+            f"{'extr FIT q':>12}{'extr FIT q̇':>12}{'fric err %':>11}{'pass/ep':>8}{'time s':>8}"
         )
         for r in out["accuracy"]:
             print(
