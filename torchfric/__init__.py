@@ -28,6 +28,7 @@ from .friction import (
 )
 from .identify import EKFCallback, EKFResult, EKFTuning, PassRecord, identify_ekf
 from .metrics import fit_percent, score_simulation
+from .output_error import OECallback, OEResult, OETuning, identify_output_error
 from .prefit import PrefitResult, prefit
 from .simulate import simulate
 
@@ -58,6 +59,10 @@ __all__ = [
     "export_model",
     "fit_percent",
     "identify_ekf",
+    "identify_output_error",
+    "OECallback",
+    "OEResult",
+    "OETuning",
     "load_checkpoint",
     "load_experiment",
     "make_experiment",
