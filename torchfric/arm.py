@@ -200,10 +200,11 @@ class ArmModel(nn.Module):
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         return self.vector_field(x, u)
 
-    def friction_torque(self, v: Tensor) -> Tensor:
-        """Total velocity-dependent friction ``b v + C(v) + offset`` at velocities `v` (any shape)."""
-        _, arm = self.split(self.theta_vector())
-        out = self.friction(v)
+    def friction_torque(self, v: Tensor, theta: Tensor | None = None) -> Tensor:
+        """Total velocity-dependent friction ``b v + C(v) + offset`` at velocities `v` (any shape),
+        for the module's own θ or a given θ `(k,)` (estimation coordinates)."""
+        fric, arm = self.split(self.theta_vector() if theta is None else theta)
+        out = self.friction.evaluate(v, fric)
         if "viscous" in arm:
             out = out + arm["viscous"] * v
         if "offset" in arm:

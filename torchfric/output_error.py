@@ -250,9 +250,7 @@ def _scales(data: Sequence[_Data]) -> Tensor:
 def _substeps(model: ArmModel, theta: Tensor, dt: float, substeps: int | str) -> int:
     if substeps != "auto":
         return int(substeps)
-    with torch.no_grad():
-        probe = ArmModel.from_spec(model.spec()).set_theta(theta.detach())
-        return auto_substeps(probe, dt, _METHOD)
+    return auto_substeps(model, dt, _METHOD, theta=theta)
 
 
 def _rollout(

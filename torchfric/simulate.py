@@ -55,16 +55,22 @@ def sample_grid(t: Tensor, substeps: int) -> Tensor:
 
 
 def auto_substeps(
-    model: ArmModel, dt: float, method: str = "rk4", *, max_substeps: int = 64
+    model: ArmModel,
+    dt: float,
+    method: str = "rk4",
+    *,
+    theta: Tensor | None = None,
+    max_substeps: int = 64,
 ) -> int:
     """Smallest sub-step count that keeps the explicit solver stable for the model's stiffest
     friction slope: ``S = ⌈λ·dt / c⌉`` with ``λ = max |∂q̈/∂q̇|`` over velocities from 1e-4 to 1e3
-    and `c` the solver's allowed ``|λh|`` (`SOLVERS`)."""
+    and `c` the solver's allowed ``|λh|`` (`SOLVERS`), for the model's own θ or a given one."""
     mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
     v = torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags]).requires_grad_(True)
+    theta = (model.theta_vector() if theta is None else theta).detach()
     with torch.enable_grad():
-        (g,) = torch.autograd.grad(model.friction_torque(v).sum(), v)
-    lam = float(g.detach().abs().max() / model.inertia.detach())
+        (g,) = torch.autograd.grad(model.friction_torque(v, theta).sum(), v)
+    lam = float(g.detach().abs().max() / model.split(theta)[1]["inertia"])
     if not math.isfinite(lam):
         raise TorchfricError(
             "the model's friction slope is not finite; check the parameters (NaN or inf in θ)"
@@ -121,12 +127,7 @@ def simulate(
         )
     if substeps == "auto":
         dt = float((t[1:] - t[:-1]).max())  # the longest interval sets the stability limit
-        with torch.no_grad():
-            if theta is not None:
-                probe = ArmModel.from_spec(model.spec()).set_theta(theta.detach())
-            else:
-                probe = model
-            steps = auto_substeps(probe, dt, method, max_substeps=max_substeps)
+        steps = auto_substeps(model, dt, method, theta=theta, max_substeps=max_substeps)
     elif isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1:
         steps = substeps
     else:
