@@ -12,7 +12,15 @@ from .data import Experiment
 from .errors import TorchfricError
 from .simulate import simulate
 
-__all__ = ["fit_percent", "rms", "SimulationScore", "score_simulation", "friction_curve_error"]
+__all__ = [
+    "fit_percent",
+    "rms",
+    "SimulationScore",
+    "score_simulation",
+    "window_initial_state",
+    "score_benchmark",
+    "friction_curve_error",
+]
 
 
 def fit_percent(y: Tensor, y_hat: Tensor) -> float:
@@ -78,6 +86,67 @@ def score_simulation(
         fit_qdot=fit_percent(v, states[sl, 1]),
         rms_q=rms(q, states[sl, 0]),
         rms_qdot=rms(v, states[sl, 1]),
+        states=states,
+    )
+
+
+def window_initial_state(q: Tensor, dt: float, n: int) -> Tensor:
+    """``[q, q̇]`` at sample ``n − 1`` from the first `n` position samples alone.
+
+    A least-squares quadratic ``q(t) ≈ c0 + c1 t + c2 t²`` through ``q[:n]`` (t relative to
+    sample ``n − 1``), evaluated at sample ``n − 1``: ``[c0, c1]``. Needs ``n >= 3``. This is how a
+    benchmark's state-initialisation window (EMPS: n = 20) is used; no velocity measurement and
+    no later sample enters.
+    """
+    q = torch.as_tensor(q, dtype=torch.float64).reshape(-1)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 3 or n > q.numel():
+        raise TorchfricError(
+            f"initial-state window n = {n!r} is invalid for {q.numel()} samples; expected an "
+            "integer 3 <= n <= N (a quadratic needs 3 points)"
+        )
+    t = (torch.arange(n, dtype=torch.float64) - (n - 1)) * dt
+    A = torch.stack([torch.ones_like(t), t, t * t], dim=1)
+    coef = torch.linalg.lstsq(A, q[:n].unsqueeze(1)).solution.squeeze(1)
+    return coef[:2]
+
+
+@torch.no_grad()
+def score_benchmark(
+    model: ArmModel,
+    experiment: Experiment,
+    *,
+    n_init: int = 20,
+    skip: int | None = None,
+    method: str = "rk4",
+    substeps: int | str = "auto",
+) -> SimulationScore:
+    """Score an open-loop simulation the way the nonlinear benchmarks do (EMPS: n_init = 20).
+
+    The first `n_init` measured positions set the initial state (`window_initial_state`, at
+    sample ``n_init − 1``); from there the model is simulated open loop from the input alone, and
+    samples ``skip …`` are scored (default ``skip = n_init``; ``rms_q`` is the benchmark's RMSE).
+    ``states`` `(N, 2)` repeats the initial state in rows ``< n_init − 1``. The q̇ scores are NaN
+    when the experiment has no velocity.
+    """
+    skip = n_init if skip is None else skip
+    k = n_init - 1
+    x0 = window_initial_state(experiment.q, experiment.dt, n_init)
+    if isinstance(skip, bool) or not isinstance(skip, int) or not n_init <= skip < experiment.n:
+        raise TorchfricError(
+            f"skip = {skip!r} is invalid for {experiment.n} samples; expected an integer with "
+            f"n_init = {n_init} <= skip < N (the scored samples follow the initial-state window)"
+        )
+    sim = simulate(model, experiment.t[k:], experiment.u[k:], x0, method=method, substeps=substeps)
+    states = torch.cat([x0.expand(k, 2), sim])
+    q = experiment.q[skip:]
+    nan = float("nan")
+    v = experiment.qdot[skip:] if experiment.qdot is not None else None
+    return SimulationScore(
+        name=experiment.name,
+        fit_q=fit_percent(q, states[skip:, 0]),
+        fit_qdot=nan if v is None else fit_percent(v, states[skip:, 1]),
+        rms_q=rms(q, states[skip:, 0]),
+        rms_qdot=nan if v is None else rms(v, states[skip:, 1]),
         states=states,
     )
 
