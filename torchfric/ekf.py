@@ -45,6 +45,7 @@ __all__ = [
     "measurement_matrix",
     "make_propagator",
     "make_step",
+    "compile_with_fallback",
     "StepFn",
     "make_reference_flow",
     "stage_jacobians",
@@ -263,6 +264,13 @@ def make_step(flow: Propagator, *, compile: bool = False) -> StepFn:
 
     if not compile:
         return eager
+    return compile_with_fallback(eager)
+
+
+def compile_with_fallback(eager: StepFn) -> StepFn:
+    """`eager` through `torch.compile` (Inductor, full graph, static shapes), compiled on the
+    first call; if compilation fails for any reason the eager function is used from then on —
+    same arithmetic. The returned function carries `.eager` and `.chosen` (the function in use)."""
     compiled = torch.compile(eager, dynamic=False, fullgraph=True)
     chosen: list[StepFn] = []
 

@@ -1,0 +1,219 @@
+"""Batched EKF ensembles (`torchfric.ensemble`) against the single filter, member by member.
+
+Truth here is the single-filter implementation: every member of a batch must reproduce
+`identify_ekf` run alone on that member's start and tuning (same passes, rollback, early stop),
+and a member that diverges must neither stop nor disturb the others.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchfric.arm import ArmModel
+from torchfric.data import Experiment, make_experiment
+from torchfric.ekf import make_propagator, make_step, measurement_matrix
+from torchfric.ensemble import (
+    DIVERGED,
+    EnsembleSpec,
+    identify_ekf_ensemble,
+    make_batched_step,
+    member_grid,
+    random_thetas,
+    simulate_members,
+)
+from torchfric.errors import TorchfricError
+from torchfric.friction import OddTanhFriction, PolytopicFriction
+from torchfric.identify import EKFTuning, identify_ekf
+from torchfric.metrics import score_simulation
+from torchfric.rig import RigParameters, excitation
+from torchfric.simulate import auto_substeps, simulate
+
+
+def _true() -> ArmModel:
+    friction = OddTanhFriction(3, w1=[0.5, 5.0, 50.0], w2=[0.04, 0.05, 0.1])
+    return ArmModel(friction, inertia=0.0292, viscous=0.01, c_m=16.0)
+
+
+def _data(model: ArmModel, n: int = 400, seed: int = 2, name: str = "synthetic") -> Experiment:
+    rig = RigParameters()
+    u = torch.as_tensor(excitation("identification", duration=30.0, seed=seed)[:n])
+    t = torch.arange(n) * rig.dt
+    with torch.no_grad():
+        x = simulate(model, t, u, torch.zeros(2))
+    q = torch.round(x[:, 0] / rig.quantum) * rig.quantum
+    return make_experiment(t, u, q, name=name).with_velocity()
+
+
+def test_random_thetas_stay_in_the_box_and_keep_signs() -> None:
+    model = ArmModel(PolytopicFriction(3), inertia=0.03, viscous=None, c_m=16.0)
+    theta0 = model.get_theta()
+    g = torch.Generator().manual_seed(0)
+    starts = random_thetas(model, theta0, 200, 3.0, g)
+    assert torch.equal(starts[0], theta0)
+    phys0, phys = model.to_physical(theta0), model.to_physical(starts)
+    ratio = phys / phys0
+    nz = phys0 != 0
+    assert bool((ratio[:, nz] >= 1 / 3 - 1e-12).all()) and bool((ratio[:, nz] <= 3 + 1e-12).all())
+    assert bool((phys[:, ~nz] == 0).all())  # a zero entry has no scale to draw from
+    # log-uniform: about half the factors below 1, and the box is actually explored
+    assert 0.4 < float((ratio[1:, nz] < 1).double().mean()) < 0.6
+    assert float(ratio[:, nz].max()) > 2.8 and float(ratio[:, nz].min()) < 1 / 2.8
+
+
+def test_member_grid_crosses_starts_with_tunings() -> None:
+    model = _true()
+    spec = EnsembleSpec(members=3, q_scales=(0.1, 1.0), r_scales=(1.0, 10.0, 100.0), seed=4)
+    th, qs, rs = member_grid(model, model.get_theta(), spec)
+    assert th.shape == (18, model.num_parameters) and spec.size == 18
+    assert torch.equal(th[:6], model.get_theta().expand(6, -1))
+    assert qs.tolist()[:6] == [0.1, 0.1, 0.1, 1.0, 1.0, 1.0]
+    assert rs.tolist()[:6] == [1.0, 10.0, 100.0] * 2
+    # same seed, same members
+    assert torch.equal(member_grid(model, model.get_theta(), spec)[0], th)
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [
+        EnsembleSpec(members=0),
+        EnsembleSpec(spread=0.5),
+        EnsembleSpec(q_scales=()),
+        EnsembleSpec(r_scales=(1.0, -1.0)),
+    ],
+)
+def test_bad_ensemble_specs_are_named(spec: EnsembleSpec) -> None:
+    with pytest.raises(TorchfricError, match="ensemble"):
+        spec.check()
+
+
+@pytest.mark.parametrize("compile", [False, True])
+def test_batched_step_equals_the_single_step_per_member(compile: bool) -> None:
+    model = _true()
+    k = model.num_parameters
+    n = 2 + k
+    g = torch.Generator().manual_seed(1)
+    K = 5
+    thetas = random_thetas(model, model.get_theta(), K, 2.0, g)
+    x = torch.cat([torch.tensor([[0.1, 0.5]], dtype=torch.float64).expand(K, 2), thetas], 1)
+    A = torch.randn(K, n, n, generator=g, dtype=torch.float64)
+    P = A @ A.transpose(1, 2) * 1e-3 + 1e-4 * torch.eye(n, dtype=torch.float64)
+    Q = torch.diag(torch.tensor([0.0, 1e-3] + [0.0] * k, dtype=torch.float64))
+    R = torch.diag(torch.tensor([1e-3, 1e-2], dtype=torch.float64))
+    scales = torch.tensor([0.1, 1.0, 10.0, 1.0, 3.0], dtype=torch.float64)
+    Qk, Rk = Q * scales[:, None, None], R * scales.flip(0)[:, None, None]
+    H = measurement_matrix("both", n)
+    dt, u = torch.tensor(1e-3, dtype=torch.float64), torch.tensor(0.2, dtype=torch.float64)
+    y = torch.tensor([0.1003, 0.49], dtype=torch.float64)
+    bound = torch.tensor(1e6, dtype=torch.float64)
+    batched = make_batched_step(model, 1, compile=compile)
+    single = make_step(make_propagator(model, 1))
+    xb, Pb, eb, nisb, llb, okb = batched(x, P, u, y, dt, Qk, H, Rk, bound)
+    for j in range(K):
+        xs, Ps, es, niss, lls, oks = single(x[j], P[j], u, y, dt, Qk[j], H, Rk[j], bound)
+        torch.testing.assert_close(xb[j], xs, rtol=0, atol=1e-12)
+        torch.testing.assert_close(Pb[j], Ps, rtol=0, atol=1e-12)
+        torch.testing.assert_close(llb[j], lls, rtol=1e-12, atol=1e-12)
+        assert bool(okb[j]) == bool(oks)
+
+
+@pytest.mark.slow
+def test_every_member_reproduces_identify_ekf_alone() -> None:
+    """Whole iterative identifications (3 passes, rollback and early stop on) member by member."""
+    true = _true()
+    exp = _data(true)
+    spec = EnsembleSpec(members=3, spread=1.5, q_scales=(1.0, 10.0), seed=3)
+    tuning = EKFTuning(passes=3, tolerance=1e-3)
+    thetas, qs, rs = member_grid(true, true.get_theta(), spec)
+    ens = identify_ekf_ensemble(true, exp, tuning, members=(thetas, qs, rs))
+    assert len(ens.members) == 6 and ens.selected_by == "loglik"
+    for j in range(6):
+        alone_tuning = EKFTuning(
+            passes=3,
+            tolerance=1e-3,
+            q_state=(0.0, 1e-3 * float(qs[j])),
+            r=(1e-3 * float(rs[j]), 1e-2 * float(rs[j])),
+        )
+        start = ArmModel.from_spec(true.spec()).set_theta(thetas[j])
+        alone = identify_ekf(start, exp, alone_tuning)
+        # 400 samples × 3 passes: agreement far below any identification tolerance, but not bits
+        # (batched and single matrix kernels round differently; cond(P) amplifies that).
+        torch.testing.assert_close(ens.thetas[j], alone.theta, rtol=1e-7, atol=1e-9)
+        assert ens.members[j].passes == alone.passes
+        hist = [r.loglik for r in alone.history if not r.rolled_back]
+        assert math.isclose(ens.members[j].loglik, hist[-1], rel_tol=1e-8)
+    best = max(range(6), key=lambda j: ens.members[j].loglik)
+    assert ens.best == best
+    torch.testing.assert_close(ens.result.theta, ens.thetas[best])
+    assert ens.summary()["members"] == 6
+
+
+@pytest.mark.slow
+def test_a_diverging_member_is_frozen_and_the_rest_carry_on() -> None:
+    true = _true()
+    exp = _data(true, n=300)
+    theta0 = true.get_theta()
+    bad = theta0.clone()
+    bad[true.theta_names.index("inertia")] += math.log(1e-4)  # a tiny inertia: the step blows up
+    thetas = torch.stack([theta0, bad, theta0])
+    one = torch.ones(3, dtype=torch.float64)
+    tuning = EKFTuning(passes=2, tolerance=0.0, theta_bound=50.0)
+    ens = identify_ekf_ensemble(true, exp, tuning, members=(thetas, one, one))
+    assert ens.members[1].status == DIVERGED
+    assert "pass 1" in ens.members[1].reason and "sample" in ens.members[1].reason
+    assert ens.members[1].score == -math.inf
+    assert ens.members[0].status != DIVERGED and ens.members[0].passes == 2
+    alone = identify_ekf(ArmModel.from_spec(true.spec()).set_theta(theta0), exp, tuning)
+    torch.testing.assert_close(ens.thetas[0], alone.theta, rtol=1e-7, atol=1e-9)
+    assert ens.best in (0, 2)
+    assert ens.summary()["status"][DIVERGED] == 1
+
+
+def test_all_members_diverging_is_one_clear_error() -> None:
+    true = _true()
+    exp = _data(true, n=200)
+    bad = true.get_theta()
+    bad[true.theta_names.index("inertia")] += math.log(1e-4)
+    one = torch.ones(2, dtype=torch.float64)
+    with pytest.raises(TorchfricError, match="every one of the 2 ensemble members diverged"):
+        identify_ekf_ensemble(
+            true,
+            exp,
+            EKFTuning(passes=1, theta_bound=50.0),
+            members=(bad.expand(2, -1), one, one),
+        )
+
+
+@pytest.mark.slow
+def test_selection_by_validation_fit_matches_score_simulation() -> None:
+    true = _true()
+    train, val = _data(true, n=400), _data(true, n=600, seed=5, name="val")
+    spec = EnsembleSpec(members=4, spread=2.0, seed=0)
+    ens = identify_ekf_ensemble(true, train, EKFTuning(passes=1), spec, validation=[val])
+    assert ens.selected_by == "validation_fit"
+    for m in ens.members:
+        model = ArmModel.from_spec(true.spec()).set_theta(ens.thetas[m.index])
+        ref = score_simulation(model, val)
+        assert math.isclose(m.fits["val"]["fit_q"], ref.fit_q, abs_tol=1e-6)
+        assert math.isclose(m.fits["val"]["fit_qdot"], ref.fit_qdot, abs_tol=1e-6)
+        assert math.isclose(m.score, 0.5 * (ref.fit_q + ref.fit_qdot), abs_tol=1e-6)
+    assert ens.best == max(range(4), key=lambda j: ens.members[j].score)
+
+
+def test_simulate_members_equals_one_by_one() -> None:
+    true = _true()
+    exp = _data(true, n=1500)
+    g = torch.Generator().manual_seed(7)
+    thetas = random_thetas(true, true.get_theta(), 3, 2.0, g)
+    sims = simulate_members(true, thetas, exp)
+    steps = max(auto_substeps(true, exp.dt, theta=thetas[j]) for j in range(3))
+    x0 = torch.stack([exp.q[0], exp.qdot[0]])
+    for j in range(3):
+        model = ArmModel.from_spec(true.spec()).set_theta(thetas[j])
+        with torch.no_grad():
+            ref = simulate(model, exp.t, exp.u, x0, substeps=steps)
+        torch.testing.assert_close(sims[:, j], ref, rtol=0, atol=1e-12)
+    assert sims.shape == (1500, 3, 2)
+    assert float(sims[:, :, 1].abs().max()) > 1.0  # the arm actually moves
