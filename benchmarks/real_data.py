@@ -248,20 +248,20 @@ def print_table(results: dict[str, Any]) -> None:
     if "emps" in results:
         print("EMPS (test: DATA_EMPS_PULSES.mat, 1000·RMSE(qm[20:], ŷ[20:]) in mm)")
         print(
-            f"{'model':<28}{'test mm':>9}{'train mm':>10}{'M kg':>9}{'b N·s/m':>10}"
+            f"{'model':<46}{'test mm':>9}{'train mm':>10}{'M kg':>9}{'b N·s/m':>10}"
             f"{'offset N':>10}  friction N at q̇ = " + ", ".join(f"{v:+g}" for v in EMPS_V)
         )
         for name, r in results["emps"].items():
             if "missing" in r:
-                print(f"{name:<28}  (no checkpoint: {r['missing']})")
+                print(f"{name:<46}  (no checkpoint: {r['missing']})")
                 continue
             fr = ", ".join(f"{x:+.1f}" for x in r["friction_N"].values())
             print(
-                f"{name:<28}{r['test_rmse_mm']:>9.2f}{r['train_rmse_mm']:>10.2f}"
+                f"{name:<46}{r['test_rmse_mm']:>9.2f}{r['train_rmse_mm']:>10.2f}"
                 f"{r['inertia']:>9.2f}{_fmt(r['viscous'], '.1f'):>10}{r['offset']:>10.2f}  {fr}"
             )
         for name, mm in EMPS_RESULTS_MM.items():
-            print(f"{name:<28.28}{mm:>9.2f}   (published)")
+            print(f"{name:<46}{mm:>9.2f}   (published)")
         print()
     if "hsm150" in results:
         print("HSM150 (test: repeat 3 of each condition, open loop from rest)")
