@@ -217,3 +217,62 @@ def test_simulate_members_equals_one_by_one() -> None:
         torch.testing.assert_close(sims[:, j], ref, rtol=0, atol=1e-12)
     assert sims.shape == (1500, 3, 2)
     assert float(sims[:, :, 1].abs().max()) > 1.0  # the arm actually moves
+
+
+@pytest.mark.slow
+def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """`estimator.ensemble` through `torchfric train`: ensemble.json, metrics, the checkpoint
+    holds the kept member, and a run cut after pass 1 resumes to the same θ."""
+    import json
+    import shutil
+    import textwrap
+
+    from torchfric.checkpoint import read_checkpoint
+    from torchfric.cli import main
+
+    cfg = tmp_path / "ens.toml"
+    cfg.write_text(
+        textwrap.dedent(
+            f"""
+            name = "ens"
+            out_dir = "{(tmp_path / "runs").as_posix()}"
+            checkpoint_dir = "{(tmp_path / "checkpoints").as_posix()}"
+            [data]
+            train = ["rig:identification"]
+            validation = ["rig:validation"]
+            test = []
+            stop = 1200
+            [model]
+            friction = "tanh"
+            c_m = 16.0
+            [estimator]
+            passes = 2
+            tolerance = 0
+            compile = false
+            ensemble = 3
+            ensemble_q_scales = [1.0, 10.0]
+            """
+        )
+    )
+    assert main(["train", str(cfg), "--quiet"]) == 0
+    run = tmp_path / "runs" / "ens"
+    report = json.loads((run / "ensemble.json").read_text())
+    assert report["summary"]["members"] == 6 and len(report["members"]) == 6
+    scores = [m["score"] for m in report["members"]]
+    best = report["summary"]["best"]
+    assert scores[best] == max(scores)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["ensemble"]["best"] == best
+    fit = metrics["validation"]["validation"]
+    assert 0.5 * (fit["fit_q"] + fit["fit_qdot"]) == pytest.approx(scores[best], abs=1e-6)
+    ckpt = read_checkpoint(tmp_path / "checkpoints" / "ens.pt")
+    snap2 = read_checkpoint(run / "passes" / "ensemble_002.pt")
+    torch.testing.assert_close(ckpt["theta"], snap2["estimator"]["state"]["thetas"][best])
+
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    (copy / "passes" / "ensemble_002.pt").unlink()
+    (tmp_path / "checkpoints" / "ens.pt").unlink()
+    assert main(["train", str(cfg), "--quiet", "--resume", str(copy)]) == 0
+    resumed = read_checkpoint(tmp_path / "checkpoints" / "ens.pt")
+    torch.testing.assert_close(resumed["theta"], ckpt["theta"], rtol=0, atol=1e-12)

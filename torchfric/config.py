@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, NoReturn
 
 from .ekf import MEASUREMENTS
+from .ensemble import EnsembleSpec
 from .errors import TorchfricError
 from .friction import FRICTIONS
 from .identify import EKFTuning
@@ -390,6 +391,9 @@ class EstimatorConfig:
             theta_bound: the EKF tuning, see `torchfric.identify.EKFTuning` (`ekf_tuning()`).
             p0_theta and q_theta are one number for every θ entry or one per entry.
         epochs, lr, window, batch: output-error training (``window = 0``: full length).
+        ensemble: number of random starts of an EKF ensemble (0: a single filter); with
+            ensemble_spread (×/÷ box around the initial θ), ensemble_q_scales and
+            ensemble_r_scales (tuning grid) — see `torchfric.ensemble.EnsembleSpec`.
     """
 
     method: str = "ekf"
@@ -418,6 +422,10 @@ class EstimatorConfig:
     eval_every: int = 10
     schedule: tuple[int, ...] = ()
     adjoint: bool = False
+    ensemble: int = 0
+    ensemble_spread: float = 3.0
+    ensemble_q_scales: tuple[float, ...] = (1.0,)
+    ensemble_r_scales: tuple[float, ...] = (1.0,)
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ()
 
@@ -469,6 +477,17 @@ class EstimatorConfig:
             )
         c.set("schedule", tuple(int(v) for v in sched))
         c.boolean("adjoint")
+        c.integer("ensemble", ge=0)
+        c.number("ensemble_spread", ge=1.0)
+        for key in ("ensemble_q_scales", "ensemble_r_scales"):
+            c.numbers(key)
+            if not getattr(self, key) or not all(v > 0 for v in getattr(self, key)):
+                c.range_error(key, list(getattr(self, key)), "a non-empty list of factors > 0")
+        if self.ensemble and self.method != "ekf":
+            raise TorchfricError(
+                f'estimator.ensemble = {self.ensemble} needs estimator.method = "ekf" '
+                f'(got "{self.method}"); set estimator.ensemble = 0 for output-error'
+            )
         if self.method == "output_error":
             self.oe_tuning().check(1)  # the estimator's own cross-field rules (lr_final <= lr, ...)
 
@@ -489,6 +508,16 @@ class EstimatorConfig:
             substeps=self.substeps,
             schedule=self.schedule,
             adjoint=self.adjoint,
+        )
+
+    def ensemble_spec(self, seed: int = 0) -> EnsembleSpec:
+        """The ensemble settings as `torchfric.ensemble.EnsembleSpec` (only when ensemble > 0)."""
+        return EnsembleSpec(
+            members=self.ensemble,
+            spread=self.ensemble_spread,
+            q_scales=tuple(self.ensemble_q_scales),
+            r_scales=tuple(self.ensemble_r_scales),
+            seed=seed,
         )
 
     def ekf_tuning(self) -> EKFTuning:

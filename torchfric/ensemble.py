@@ -256,11 +256,10 @@ class EnsembleResult:
 class EnsembleCallback(EKFCallback):
     """Progress and per-pass hooks of an ensemble run (defaults do nothing)."""
 
-    def on_ensemble_pass_end(
-        self, pass_index: int, thetas: Tensor, status: list[str], logliks: Tensor
-    ) -> bool | None:
-        """After each pass: θ `(K, k)`, each member's status, its pass log-likelihood `(K,)`.
-        Return False to stop."""
+    def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
+        """After each pass, with the ensemble's whole state (θ `(K, k)` as "thetas", each
+        member's "status", its pass records in "histories", ...): enough to resume from with
+        `identify_ekf_ensemble(start=state)`. Return False to stop."""
         return None
 
 
@@ -273,6 +272,7 @@ def identify_ekf_ensemble(
     members: tuple[Tensor, Tensor, Tensor] | None = None,
     validation: Sequence[Experiment] = (),
     callback: EnsembleCallback | None = None,
+    start: dict[str, Any] | None = None,
     progress_every: int = 2000,
 ) -> EnsembleResult:
     """Run K iterative EKFs as one batch and keep the best member.
@@ -285,6 +285,9 @@ def identify_ekf_ensemble(
         members: explicit ``(θ (K,k), q_scale (K,), r_scale (K,))``.
         validation: experiments for the selection by open-loop FIT (else: log-likelihood).
         callback: `EnsembleCallback`.
+        start: a state passed to `EnsembleCallback.on_ensemble_pass_end`: continue after that
+            pass (members, tuning scales and histories come from it; the result equals an
+            uninterrupted run's).
 
     Returns:
         `EnsembleResult`; `.result` is the kept member as an `EKFResult` with its pass history.
@@ -299,6 +302,8 @@ def identify_ekf_ensemble(
         raise TorchfricError("identify_ekf_ensemble needs at least one experiment")
     k = model.num_parameters
     tuning.check(k)
+    if start is not None:
+        members = (start["members_theta"], start["q_scale"], start["r_scale"])
     if members is None:
         spec = spec or EnsembleSpec()
         thetas, q_scale, r_scale = member_grid(model, model.get_theta(), spec)
@@ -339,8 +344,35 @@ def identify_ekf_ensemble(
     best_ll = torch.full((K,), -math.inf, dtype=f64)
     best_theta, best_P = theta.clone(), P_theta.clone()
     filter_steps = 0
+    first_pass = 1
+    if start is not None:
+        first_pass = int(start["pass"]) + 1
+        theta, P_theta = start["thetas"].clone(), start["P_thetas"].clone()
+        best_theta, best_P = start["best_theta"].clone(), start["best_P"].clone()
+        best_ll = start["best_loglik"].clone()
+        status, reasons = list(start["status"]), list(start["reasons"])
+        histories = [[PassRecord(**r) for r in h] for h in start["histories"]]
+        filter_steps = int(start["filter_steps"])
 
-    for p in range(1, tuning.passes + 1):
+    def snapshot(p: int) -> dict[str, Any]:
+        return {
+            "method": "ekf_ensemble",
+            "pass": p,
+            "members_theta": thetas.clone(),
+            "q_scale": q_scale.clone(),
+            "r_scale": r_scale.clone(),
+            "thetas": theta.clone(),
+            "P_thetas": P_theta.clone(),
+            "best_theta": best_theta.clone(),
+            "best_P": best_P.clone(),
+            "best_loglik": best_ll.clone(),
+            "status": list(status),
+            "reasons": list(reasons),
+            "histories": [[r.to_dict() for r in h] for h in histories],
+            "filter_steps": filter_steps,
+        }
+
+    for p in range(first_pass, tuning.passes + 1):
         if all(s != RUNNING for s in status):
             break
         t0 = time.perf_counter()
@@ -434,7 +466,7 @@ def identify_ekf_ensemble(
                 if tuning.tolerance > 0 and record.rel_change < tuning.tolerance:
                     status[i] = CONVERGED
             histories[i].append(record)
-        if callback.on_ensemble_pass_end(p, theta.clone(), list(status), loglik.clone()) is False:
+        if callback.on_ensemble_pass_end(p, snapshot(p)) is False:
             break
 
     alive = [i for i in range(K) if status[i] != DIVERGED or histories[i]]

@@ -26,6 +26,7 @@ from .checkpoint import (
 )
 from .config import POSITION_UNITS, RIG_PREFIX, Config
 from .data import Experiment, load_experiment, make_experiment
+from .ensemble import EnsembleCallback, identify_ekf_ensemble
 from .errors import DivergenceError, TorchfricError
 from .friction import make_friction
 from .identify import EKFCallback, EKFResult, PassRecord, identify_ekf
@@ -311,8 +312,11 @@ def _estimator_payload(result: EKFResult, pass_index: int) -> dict[str, Any]:
 
 
 def _latest_snapshot(run_dir: pathlib.Path) -> pathlib.Path | None:
-    snaps = sorted((run_dir / "passes").glob("pass_*.pt")) or sorted(
-        (run_dir / "passes").glob("epoch_*.pt")
+    folder = run_dir / "passes"
+    snaps = (
+        sorted(folder.glob("pass_*.pt"))
+        or sorted(folder.glob("epoch_*.pt"))
+        or sorted(folder.glob("ensemble_*.pt"))
     )
     return snaps[-1] if snaps else None
 
@@ -337,6 +341,8 @@ def _run_ekf(
     run: pathlib.Path,
     fingerprints: dict[str, str],
 ):  # type: ignore[no-untyped-def]
+    if cfg.estimator.ensemble > 0 or (est is not None and est.get("method") == "ekf_ensemble"):
+        return _run_ensemble(cfg, model, train_exps, logger, est, run)
     start = None
     if est is not None:
         start = (est["theta"], est["P_theta"], [PassRecord(**r) for r in est["history"]])
@@ -366,6 +372,99 @@ def _run_ekf(
         "converged": result.converged,
         "samples_per_second": sum(r.samples for r in result.history)
         / max(sum(r.seconds for r in result.history), 1e-9),
+    }
+    return result.model, _estimator_payload(result, result.passes), extra
+
+
+class _EnsembleLogger(EnsembleCallback):
+    """Ensemble passes: progress, spread scalars in TensorBoard, resumable snapshots."""
+
+    def __init__(self, base: _RunLogger, model: ArmModel) -> None:
+        self.base, self.model = base, model
+
+    def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
+        self.base.on_progress(pass_index, samples_done, samples_total)
+
+    def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
+        b = self.base
+        status = state["status"]
+        ok = [i for i, s in enumerate(status) if s != "diverged"]
+        inertia = sorted(float(self.model.split(state["thetas"][i])[1]["inertia"]) for i in ok)
+        counts = {s: status.count(s) for s in sorted(set(status))}
+        for s, c in counts.items():
+            b.writer.add_scalar(f"ensemble/{s}", c, pass_index)
+        if inertia:
+            for tag, v in (
+                ("min", inertia[0]),
+                ("median", inertia[len(inertia) // 2]),
+                ("max", inertia[-1]),
+            ):
+                b.writer.add_scalar(f"ensemble/inertia_{tag}", v, pass_index)
+        lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
+        if lls:
+            b.writer.add_scalar("ensemble/loglik_best", max(lls), pass_index)
+        b.writer.flush()
+        spread = f"inertia {inertia[0]:.5g} … {inertia[-1]:.5g}" if inertia else "no member left"
+        b.say(
+            f"\r  pass {pass_index}/{b.cfg.estimator.passes} of {len(status)} members done in "
+            f"{time.perf_counter() - b.t_pass:.1f} s: "
+            + ", ".join(f"{c} {s}" for s, c in counts.items())
+            + f"; {spread}\n"
+        )
+        payload = build_checkpoint(
+            self.model,
+            config=b.cfg,
+            estimator_state=state,
+            metrics={},
+            data_fingerprints=b.fingerprints,
+            name=b.cfg.name,
+            complete=False,
+        )
+        save_checkpoint(b.run_dir / "passes" / f"ensemble_{pass_index:03d}.pt", payload)
+        b.t_pass = time.perf_counter()
+        return None
+
+
+def _run_ensemble(
+    cfg: Config,
+    model: ArmModel,
+    train_exps: list[Experiment],
+    logger: _RunLogger,
+    est: dict[str, Any] | None,
+    run: pathlib.Path,
+):  # type: ignore[no-untyped-def]
+    spec = cfg.estimator.ensemble_spec(cfg.seed)
+    logger.say(
+        f"  ensemble of {spec.size} filters ({spec.members} starts ×/÷ {spec.spread:g} around "
+        f"the initial θ × {len(spec.q_scales)} Q × {len(spec.r_scales)} R scalings), one batch"
+    )
+    ens = identify_ekf_ensemble(
+        model,
+        train_exps,
+        cfg.estimator.ekf_tuning(),
+        spec,
+        validation=logger.validation,
+        callback=_EnsembleLogger(logger, model),
+        start=est,
+    )
+    summary = ens.summary()
+    (run / "ensemble.json").write_text(
+        json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
+    )
+    best = ens.members[ens.best]
+    logger.say(
+        f"  kept member {best.index} (Q ×{best.q_scale:g}, R ×{best.r_scale:g}, {best.status}) by "
+        f"{ens.selected_by.replace('_', ' ')} {best.score:.6g}; "
+        f"{summary['status'].get('diverged', 0)} of {len(ens.members)} members diverged; "
+        f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
+    )
+    result = ens.result
+    logger.last_fit = logger.log_model(max(result.passes, 1), result.model, {})
+    extra = {
+        "passes": result.passes,
+        "converged": result.converged,
+        "samples_per_second": sum(r.samples for r in result.history) / max(ens.seconds, 1e-9),
+        "ensemble": summary,
     }
     return result.model, _estimator_payload(result, result.passes), extra
 
@@ -526,10 +625,11 @@ def train(
         if resume:
             model = ArmModel.from_spec(saved["model"])
             est = saved["estimator"]["state"]
-            model.set_theta(est["theta"])
+            if "theta" in est:  # an ensemble snapshot holds every member's θ instead
+                model.set_theta(est["theta"])
             init_kind = saved["metrics"].get("init", "resume")
             say(
-                f"  resuming after {'pass' if est['method'] == 'ekf' else 'epoch'} {est.get('pass', est.get('epoch'))}"
+                f"  resuming after {'epoch' if est['method'] == 'output_error' else 'pass'} {est.get('pass', est.get('epoch'))}"
             )
         else:
             est = None
