@@ -208,15 +208,22 @@ def test_simulate_members_equals_one_by_one() -> None:
     g = torch.Generator().manual_seed(7)
     thetas = random_thetas(true, true.get_theta(), 3, 2.0, g)
     sims = simulate_members(true, thetas, exp)
-    steps = max(auto_substeps(true, exp.dt, theta=thetas[j]) for j in range(3))
     x0 = torch.stack([exp.q[0], exp.qdot[0]])
     for j in range(3):
         model = ArmModel.from_spec(true.spec()).set_theta(thetas[j])
         with torch.no_grad():
-            ref = simulate(model, exp.t, exp.u, x0, substeps=steps)
+            ref = simulate(model, exp.t, exp.u, x0)  # its own "auto" sub-steps
         torch.testing.assert_close(sims[:, j], ref, rtol=0, atol=1e-12)
     assert sims.shape == (1500, 3, 2)
     assert float(sims[:, :, 1].abs().max()) > 1.0  # the arm actually moves
+    # A member stiffer than the cap is not simulated (NaN rows), the others are unaffected.
+    stiff = thetas.clone()
+    stiff[1, true.theta_names.index("inertia")] += math.log(1e-3)
+    need = auto_substeps(true, exp.dt, theta=stiff[1])
+    assert need > 4
+    capped = simulate_members(true, stiff, exp, max_substeps=need - 1)
+    assert bool(capped[:, 1].isnan().all())
+    torch.testing.assert_close(capped[:, [0, 2]], sims[:, [0, 2]], rtol=0, atol=0)
 
 
 @pytest.mark.slow

@@ -173,17 +173,32 @@ def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # t
 def simulate_members(
     model: ArmModel, thetas: Tensor, exp: Experiment, *, max_substeps: int = 64
 ) -> Tensor:
-    """Open-loop simulations `(N, K, 2)` of `exp` from its measured initial state for K θ's as one
-    batch (RK4, the sub-step count the stiffest member needs)."""
+    """Open-loop simulations `(N, K, 2)` of `exp` from its measured initial state for K θ's.
+
+    Members are batched by the RK4 sub-step count each one needs (`auto_substeps`), so one stiff
+    member does not make every other member's simulation slow. A member that would need more
+    than `max_substeps` is not simulated: its rows are NaN (scored as a failed run).
+    """
     if exp.qdot is None:
         raise TorchfricError(f"experiment {exp.name!r} has no velocity to score against")
     K = thetas.shape[0]
-    steps = max(
-        auto_substeps(model, exp.dt, theta=thetas[j], max_substeps=max_substeps) for j in range(K)
-    )
-    x0 = torch.stack([exp.q[0], exp.qdot[0]]).to(torch.float64).expand(K, 2)
-    u = exp.u.to(torch.float64)[:, None].expand(-1, K)
-    return simulate(model, exp.t, u, x0, theta=thetas, substeps=steps)
+    need = [
+        auto_substeps(model, exp.dt, theta=thetas[j], max_substeps=max_substeps + 1)
+        for j in range(K)
+    ]
+    out = torch.full((exp.n, K, 2), float("nan"), dtype=torch.float64)
+    x0 = torch.stack([exp.q[0], exp.qdot[0]]).to(torch.float64)
+    u = exp.u.to(torch.float64)
+    for steps in sorted(set(need)):
+        if steps > max_substeps:
+            continue
+        idx = [j for j in range(K) if need[j] == steps]
+        B = len(idx)
+        out[:, idx] = simulate(
+            model, exp.t, u[:, None].expand(-1, B), x0.expand(B, 2), theta=thetas[idx],
+            substeps=steps,
+        )  # fmt: skip
+    return out
 
 
 def _fit(y: Tensor, y_hat: Tensor) -> Tensor:
@@ -271,6 +286,7 @@ def identify_ekf_ensemble(
     *,
     members: tuple[Tensor, Tensor, Tensor] | None = None,
     validation: Sequence[Experiment] = (),
+    max_substeps: int = 64,
     callback: EnsembleCallback | None = None,
     start: dict[str, Any] | None = None,
     progress_every: int = 2000,
@@ -284,6 +300,8 @@ def identify_ekf_ensemble(
         spec: `EnsembleSpec` (used when `members` is None).
         members: explicit ``(θ (K,k), q_scale (K,), r_scale (K,))``.
         validation: experiments for the selection by open-loop FIT (else: log-likelihood).
+        max_substeps: members too stiff to simulate with this many RK4 sub-steps per sample
+            are scored as failed runs in the selection.
         callback: `EnsembleCallback`.
         start: a state passed to `EnsembleCallback.on_ensemble_pass_end`: continue after that
             pass (members, tuning scales and histories come from it; the result equals an
@@ -485,7 +503,7 @@ def identify_ekf_ensemble(
         idx = torch.tensor(alive)
         total_fit = torch.zeros(len(alive), dtype=f64)
         for v in validation:
-            sim = simulate_members(model, theta[idx], v)
+            sim = simulate_members(model, theta[idx], v, max_substeps=max_substeps)
             fq, fv = _fit(v.q.to(f64), sim[..., 0]), _fit(v.qdot.to(f64), sim[..., 1])
             total_fit += 0.5 * (fq + fv)
             for a, i in enumerate(alive):
