@@ -1,5 +1,10 @@
 """The grey-box arm: ``M q̈ = c_m u − b q̇ − C(q̇; θ) − d(q)``, state ``x = [q, q̇]``.
 
+Optional white-box terms: a constant offset, gravity ``g_c sin q`` and an even viscous term
+``a |q̇|`` (``asymmetric``): with it, ``b q̇ + a |q̇|`` is a viscous friction with different slopes
+``b + a`` (q̇ > 0) and ``b − a`` (q̇ < 0), Janot's Fv± form; the odd C and the offset then hold
+the Coulomb levels Fc± (``Fc± sign q̇ = F̄c sign q̇ + ΔFc`` while moving).
+
 `ArmModel` owns the white-box parameters (inertia M, viscous b, optional offset and gravity
 terms, optionally c_m) and a black-box `Friction` module. All its estimable parameters form one
 flat vector θ in *estimation coordinates* (log for positive parameters when `log_positive`);
@@ -34,10 +39,13 @@ class ArmModel(nn.Module):
         c_m: motor constant (input → torque); known unless `estimate_c_m`.
         offset: constant torque/force offset (EMPS has −3.2 N); ``None`` = off (not in θ).
         gravity: ``g_c = m g l`` of an unbalanced arm, torque ``g_c sin q``; ``None`` = off.
+        asymmetric: ``a`` of the even viscous term ``a |q̇|`` (any sign: half the difference of
+            the two directions' viscous slopes); ``None`` = off (not in θ).
         estimate_c_m: put c_m in θ (log space when `log_positive`).
         log_positive: store M, b, g_c, c_m as logarithms in θ so estimators cannot make them negative.
 
-    θ order: friction parameters (the friction's own order), then b, M, offset, gravity, c_m —
+    θ order: friction parameters (the friction's own order), then b, M, offset, gravity,
+    asymmetric, c_m (each only when enabled) —
     the paper's ``θ = [W1ᵀ W2 b M]ᵀ`` for the tanh model.
     """
 
@@ -52,6 +60,7 @@ class ArmModel(nn.Module):
         gravity: float | None = None,
         estimate_c_m: bool = False,
         log_positive: bool = True,
+        asymmetric: float | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(friction, Friction):
@@ -70,6 +79,8 @@ class ArmModel(nn.Module):
             self._add("offset", offset, positive=False)
         if gravity is not None:
             self._add("gravity", gravity, positive=True)
+        if asymmetric is not None:
+            self._add("asymmetric", asymmetric, positive=False)
         if estimate_c_m:
             self._add("c_m", c_m, positive=True)
         else:
@@ -195,13 +206,15 @@ class ArmModel(nn.Module):
             torque = torque - arm["offset"]
         if "gravity" in arm:
             torque = torque - arm["gravity"] * torch.sin(q)
+        if "asymmetric" in arm:
+            torque = torque - arm["asymmetric"] * v.abs()
         return torch.stack([v, torque / arm["inertia"]], dim=-1)
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         return self.vector_field(x, u)
 
     def friction_torque(self, v: Tensor, theta: Tensor | None = None) -> Tensor:
-        """Total velocity-dependent friction ``b v + C(v) + offset`` at velocities `v` (any shape),
+        """Total velocity-dependent friction ``b v + C(v) + offset [+ a |v|]`` at velocities `v`,
         for the module's own θ or a given θ `(k,)` (estimation coordinates)."""
         fric, arm = self.split(self.theta_vector() if theta is None else theta)
         out = self.friction.evaluate(v, fric)
@@ -209,6 +222,8 @@ class ArmModel(nn.Module):
             out = out + arm["viscous"] * v
         if "offset" in arm:
             out = out + arm["offset"]
+        if "asymmetric" in arm:
+            out = out + arm["asymmetric"] * v.abs()
         return out
 
     def max_slope(self, v_max: float, n: int = 401) -> float:
@@ -298,6 +313,7 @@ class ArmModel(nn.Module):
             gravity=arm.get("gravity"),
             estimate_c_m=spec["estimate_c_m"],
             log_positive=spec["log_positive"],
+            asymmetric=arm.get("asymmetric"),
         )
 
 

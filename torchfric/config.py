@@ -270,6 +270,8 @@ class DataConfig:
         velocity_cutoff_hz: cut-off of the reconstruction; ``None`` = the method's default.
         position_unit: unit of q in the files (`POSITION_UNITS`); the runner converts to SI.
         start, stop: keep samples ``start <= k < stop`` of every file (``stop=None``: to the end).
+        input_delay: whole samples by which the input acts late (`Experiment.delay_input`:
+            sample k is driven by ``u[k − input_delay]``; the first ones are dropped). 0 = none.
     """
 
     train: tuple[str, ...] = (RIG_PREFIX + "identification",)
@@ -282,6 +284,7 @@ class DataConfig:
     position_unit: str = "rad"
     start: int = 0
     stop: int | None = None
+    input_delay: int = 0
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ("train", "validation", "test")
 
@@ -315,6 +318,7 @@ class DataConfig:
         c.integer("stop", ge=1, optional=True, example=10000)
         if self.stop is not None and self.stop <= self.start:
             c.range_error("stop", self.stop, f"an integer > data.start = {self.start}, or omit it")
+        c.integer("input_delay", ge=0)
 
 
 @dataclass(frozen=True)
@@ -330,6 +334,8 @@ class ModelConfig:
             polytopic model carries its own slopes and has no separate b.
         offset: ``None`` = no constant offset term; a number enables it with that initial guess.
         gravity: ``None`` = no ``g_c sin q`` term; a number (> 0) enables it.
+        asymmetric: ``None`` = no even viscous term; a number enables ``a |q̇|`` with that
+            initial guess (direction-dependent viscous slopes b ± a, `torchfric.arm.ArmModel`).
         estimate_c_m: put c_m in θ.
         log_positive: estimate positive parameters (M, b, variances…) as logarithms.
         velocity_scale, torque_scale: scales for the friction's initial shape; ``None`` = from
@@ -350,6 +356,7 @@ class ModelConfig:
     velocity_scale: float | None = None
     torque_scale: float | None = None
     init: str = "prefit"
+    asymmetric: float | None = None
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ("init",)
 
@@ -368,6 +375,7 @@ class ModelConfig:
         c.number("viscous", ge=0.0)
         c.number("offset", optional=True, example=0.0)
         c.number("gravity", gt=0.0, optional=True, example=0.1)
+        c.number("asymmetric", optional=True, example=0.0)
         c.boolean("estimate_c_m")
         c.boolean("log_positive")
         if self.viscous == 0.0 and self.log_positive and self.friction != "polytopic":

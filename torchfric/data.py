@@ -280,6 +280,24 @@ class Experiment:
             self, t=self.t[start:stop], u=self.u[start:stop], q=self.q[start:stop], qdot=qdot
         )
 
+    def delay_input(self, samples: int) -> Experiment:
+        """A copy in which the input acts `samples` steps late: ``u_new[k] = u[k − samples]``.
+
+        A transport delay of whole samples (e.g. one controller cycle between the logged command
+        and the actuator). The first `samples` samples have no known input and are dropped, so
+        the result has ``N − samples`` samples; ``t`` is kept as is. ``samples = 0`` is a copy.
+        """
+        ok = isinstance(samples, int) and not isinstance(samples, bool)
+        if not ok or not 0 <= samples <= self.n - 2:
+            raise TorchfricError(
+                f"{self.name}: delay_input({samples!r}) is invalid for {self.n} samples; expected "
+                f"an integer 0 <= samples <= {self.n - 2}"
+            )
+        if samples == 0:
+            return replace(self)
+        qdot = None if self.qdot is None else self.qdot[samples:]
+        return replace(self, t=self.t[samples:], u=self.u[:-samples], q=self.q[samples:], qdot=qdot)
+
     def to_numpy(self) -> dict[str, np.ndarray]:
         """``{"t", "u", "q"[, "qdot"]}`` as float64 `(N,)` arrays (copies)."""
         return {

@@ -1,11 +1,11 @@
 """Data-driven initial θ: an inverse-dynamics least-squares pre-fit (equation error).
 
-``c_m u = M q̈ + b q̇ + C(q̇; θ) + offset + g_c sin q`` is fitted on zero-phase filtered velocity
+``c_m u = M q̈ + b q̇ + C(q̇; θ) + offset + g_c sin q + a |q̇|`` (enabled terms) is fitted on zero-phase filtered velocity
 and acceleration (`data.zero_phase_derivative` / `zero_phase_acceleration`), as in the EMPS
 reference identification (IDIM-LS). Steps:
 
 1. A linear least-squares fit of the white-box skeleton ``M, b, F_c`` (Coulomb ``F_c sign q̇``)
-   plus the enabled offset/gravity terms gives the scales of inertia and friction.
+   plus the enabled offset/gravity/asymmetric terms gives the scales of inertia and friction.
 2. The friction module is initialised from those scales (velocity scale: the 95th percentile
    of ``|q̇|``; torque scale: ``F_c``), then all of θ is refined by Levenberg–Marquardt on the
    equation error, with the Jacobian from `torch.func.jacfwd` (θ in estimation coordinates, so
@@ -33,7 +33,21 @@ from .data import Experiment, zero_phase_acceleration, zero_phase_derivative
 from .errors import TorchfricError
 from .friction import make_friction
 
-__all__ = ["PrefitResult", "prefit"]
+__all__ = ["PrefitResult", "prefit", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION"]
+
+CUTOFF_HZ = 50.0
+"""The pre-fit's cut-off when the sampling is fast enough (the EMPS IDIM recipe's scale)."""
+NYQUIST_FRACTION = 0.4
+"""Otherwise the cut-off sits at this fraction of the Nyquist frequency (a cut-off at or above
+Nyquist is no filter at all). There a central difference has gain sin(ω·dt)/(ω·dt) = 0.76, where
+the forward-backward Butterworth is at 0.5 anyway; at a tenth of Nyquist the gain is 0.996."""
+
+
+def default_cutoff_hz(dt: float) -> float:
+    """``min(CUTOFF_HZ, NYQUIST_FRACTION · 1/(2·dt))``: 50 Hz at 1 kHz, 8 Hz at 40 Hz."""
+    if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
+        raise TorchfricError(f"dt = {dt!r}; expected a positive finite sample period in s")
+    return min(CUTOFF_HZ, NYQUIST_FRACTION * 0.5 / float(dt))
 
 
 @dataclass
@@ -88,7 +102,7 @@ def _regression_data(
 def _linear_skeleton(
     model: ArmModel, q: Tensor, v: Tensor, a: Tensor, u: Tensor
 ) -> dict[str, float]:
-    """Least squares for c_m u = M a + b v + Fc sign(v) [+ offset] [+ g sin q]."""
+    """Least squares for c_m u = M a + b v + Fc sign(v) [+ offset] [+ g sin q] [+ a |v|]."""
     c_m = float(model.c_m.detach())
     names = ["inertia", "viscous", "coulomb"]
     cols = [a, v, torch.sign(v)]
@@ -99,6 +113,9 @@ def _linear_skeleton(
     if "gravity" in arm:
         names.append("gravity")
         cols.append(torch.sin(q))
+    if "asymmetric" in arm:
+        names.append("asymmetric")
+        cols.append(v.abs())
     A = torch.stack(cols, dim=1)
     scale = A.abs().amax(0).clamp_min(1e-300)
     sol = torch.linalg.lstsq(A / scale, (c_m * u).unsqueeze(1)).solution.squeeze(1) / scale
@@ -156,6 +173,7 @@ def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmM
             gravity=(max(lin["gravity"], 1e-12) if "gravity" in lin else None)
             if "gravity" in spec["arm"]
             else None,
+            asymmetric=lin.get("asymmetric") if "asymmetric" in spec["arm"] else None,
             estimate_c_m=spec["estimate_c_m"],
             log_positive=spec["log_positive"],
         )
@@ -230,7 +248,7 @@ def prefit(
     model: ArmModel,
     experiments: Experiment | Sequence[Experiment],
     *,
-    cutoff_hz: float = 50.0,
+    cutoff_hz: float | None = None,
     stick_fraction: float = 0.02,
     iterations: int = 50,
 ) -> PrefitResult:
@@ -240,7 +258,9 @@ def prefit(
         model: the arm whose structure (friction kind/size, enabled terms, c_m) is kept; its
             values are replaced. Not modified.
         experiments: identification data (positions q and inputs u; velocity is re-derived).
-        cutoff_hz: zero-phase low-pass cut-off for velocity and acceleration.
+        cutoff_hz: zero-phase low-pass cut-off for velocity and acceleration; ``None`` =
+            `default_cutoff_hz` of the coarsest sample step (50 Hz at 1 kHz, 0.4 × Nyquist for
+            slowly sampled records such as the 40 Hz unbalanced disc).
         stick_fraction: samples with ``|q̇| < stick_fraction · max|q̇|`` are left out.
         iterations: Levenberg–Marquardt iterations per start.
 
@@ -250,6 +270,8 @@ def prefit(
     exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
     if not exps:
         raise TorchfricError("prefit needs at least one experiment")
+    if cutoff_hz is None:
+        cutoff_hz = default_cutoff_hz(max(e.dt for e in exps))
     q, v, a, u = _regression_data(exps, cutoff_hz, stick_fraction)
     v_stick = stick_fraction * float(v.abs().max())
     lin = _linear_skeleton(model, q, v, a, u)

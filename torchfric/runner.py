@@ -87,6 +87,8 @@ def load_data(
         exps = []
         for p in paths:
             exp, digest = _load_one(cfg, p)
+            if cfg.data.input_delay:
+                exp = exp.delay_input(cfg.data.input_delay)
             prints[p] = digest
             exps.append(exp)
         groups.append(exps)
@@ -118,6 +120,7 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
         c_m=m.c_m,
         offset=m.offset,
         gravity=m.gravity,
+        asymmetric=m.asymmetric,
         estimate_c_m=m.estimate_c_m,
         log_positive=m.log_positive,
     )
