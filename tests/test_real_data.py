@@ -34,7 +34,7 @@ def _config(name: str, *overrides: str) -> Config:
 
 
 # --------------------------------------------------------------------------- EMPS
-@pytest.mark.parametrize("name", ["emps_tanh_ekf", "emps_tanh_oe"])
+@pytest.mark.parametrize("name", ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe"])
 def test_emps_config_maps_columns_and_units(shared_data: pathlib.Path, name: str) -> None:
     cfg = _config(name)
     folder = shared_data / "emps"
@@ -112,17 +112,21 @@ def test_hsm150_config_maps_columns_and_split(shared_data: pathlib.Path) -> None
 
 
 # --------------------------------------------------------------------------- unbalanced disc
-def test_disc_config_maps_columns_and_holds_out_the_tail(shared_data: pathlib.Path) -> None:
-    cfg = _config("disc_tanh_ekf")
+@pytest.mark.parametrize("name", ["disc_tanh_ekf", "disc_tanh_oe"])
+def test_disc_config_maps_columns_and_holds_out_the_tail(
+    shared_data: pathlib.Path, name: str
+) -> None:
+    cfg = _config(name)
     assert cfg.model.gravity is not None  # the pendulum term g_c sin q
+    assert not cfg.data.validation and not cfg.data.test  # the tail is scored only by the benchmark
     train, _, _, _ = load_data(cfg)
     raw = np.load(shared_data / "unbalanced_disk" / "training-val-test-data.npz")
-    stop = cfg.data.stop
+    stop, d = cfg.data.stop, cfg.data.input_delay
     assert stop is not None and stop <= int(0.8 * raw["th"].shape[0])  # the tail stays held out
     exp = train[0]
-    np.testing.assert_array_equal(exp.q.numpy(), raw["th"][:stop])  # disc angle [rad]
-    np.testing.assert_array_equal(exp.u.numpy(), raw["u"][:stop])  # motor voltage [V]
-    np.testing.assert_allclose(exp.t.numpy(), np.arange(stop) * 0.025, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(exp.q.numpy(), raw["th"][d:stop])  # disc angle [rad]
+    np.testing.assert_array_equal(exp.u.numpy(), raw["u"][: stop - d])  # voltage, d samples late
+    np.testing.assert_allclose(exp.t.numpy(), np.arange(d, stop) * 0.025, rtol=0, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- helpers (no data)
