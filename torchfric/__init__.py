@@ -15,6 +15,7 @@ from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from .config import Config
 from .data import Experiment, load_experiment, make_experiment, reconstruct_velocity, save_csv
 from .ekf import EKFState, Innovation, predict, update
+from .ensemble import EnsembleResult, EnsembleSpec, identify_ekf_ensemble
 from .errors import DivergenceError, TorchfricError
 from .export import export_model
 from .friction import (
@@ -31,6 +32,7 @@ from .metrics import fit_percent, score_simulation
 from .output_error import OECallback, OEResult, OETuning, identify_output_error
 from .prefit import PrefitResult, prefit
 from .simulate import simulate
+from .uncertainty import friction_band
 
 try:
     __version__ = version("torchfric")
@@ -59,6 +61,10 @@ __all__ = [
     "export_model",
     "fit_percent",
     "identify_ekf",
+    "identify_ekf_ensemble",
+    "EnsembleSpec",
+    "EnsembleResult",
+    "friction_band",
     "identify_output_error",
     "OECallback",
     "OEResult",
