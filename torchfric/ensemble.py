@@ -41,7 +41,6 @@ from .ekf import (
     compile_with_fallback,
     make_propagator,
     make_step,
-    measurement_matrix,
     update,
 )
 from .errors import TorchfricError
@@ -51,7 +50,6 @@ from .identify import (
     EKFTuning,
     PassRecord,
     _measurements,
-    _vector,
 )
 from .simulate import auto_substeps, simulate
 
@@ -335,21 +333,10 @@ def identify_ekf_ensemble(
     callback = callback or EnsembleCallback()
     n = 2 + k
     f64 = torch.float64
-    Q = torch.diag(
-        torch.cat([_vector(tuning.q_state, 2, "q_state"), _vector(tuning.q_theta, k, "q_theta")])
-    )
+    Q, P0_xx, H, R = tuning.matrices(k)
     Qk = Q * q_scale[:, None, None]
-    H = measurement_matrix(tuning.measure, n)
-    R = torch.diag(torch.as_tensor(tuning.r, dtype=f64))
     Rk = R * r_scale[:, None, None]
-    P0_xx = torch.diag(_vector(tuning.p0_state, 2, "p0_state"))
-    p0 = _vector(tuning.p0_theta, k, "p0_theta")
-    if tuning.p0_relative:
-        size = torch.where(model.log_mask(), torch.ones_like(thetas), thetas.abs())
-        p0 = p0 * size.clamp_min(1e-6 * float(size.max())) ** 2
-        P_theta = torch.diag_embed(p0)
-    else:
-        P_theta = torch.diag(p0).expand(K, k, k).clone()
+    P_theta = tuning.initial_P_theta(model, thetas)
     theta = thetas.clone()
     bound = torch.tensor(tuning.theta_bound, dtype=f64)
     step_fn = make_batched_step(model, tuning.substeps, compile=tuning.compile)

@@ -122,6 +122,27 @@ class EKFTuning:
         if not (self.theta_bound > 0):
             raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")
 
+    def matrices(self, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(Q (n,n), P0_xx (2,2), H (m,n), R (m,m))`` for a model with k parameters."""
+        n = 2 + k
+        Q = torch.diag(
+            torch.cat([_vector(self.q_state, 2, "q_state"), _vector(self.q_theta, k, "q_theta")])
+        )
+        P0_xx = torch.diag(_vector(self.p0_state, 2, "p0_state"))
+        H = measurement_matrix(self.measure, n)
+        R = torch.diag(torch.as_tensor(self.r, dtype=torch.float64))
+        return Q, P0_xx, H, R
+
+    def initial_P_theta(self, model: ArmModel, theta: Tensor) -> Tensor:
+        """P_θθ at the start for θ `(..., k)` (a batch of starts gives `(..., k, k)`); with
+        `p0_relative`, each start's linearly stored entries are scaled by its own size."""
+        p0 = _vector(self.p0_theta, theta.shape[-1], "p0_theta")
+        if self.p0_relative:
+            size = torch.where(model.log_mask(), torch.ones_like(theta), theta.abs())
+            floor = 1e-6 * size.amax(dim=-1, keepdim=True)
+            p0 = p0 * torch.maximum(size, floor) ** 2
+        return torch.diag_embed(p0.expand_as(theta).clone())
+
 
 @dataclass
 class PassRecord:
@@ -214,12 +235,7 @@ def identify_ekf(
     tuning.check(k)
     callback = callback or EKFCallback()
     n = 2 + k
-    Q = torch.diag(
-        torch.cat([_vector(tuning.q_state, 2, "q_state"), _vector(tuning.q_theta, k, "q_theta")])
-    )
-    P0_xx = torch.diag(_vector(tuning.p0_state, 2, "p0_state"))
-    H = measurement_matrix(tuning.measure, n)
-    R = torch.diag(torch.as_tensor(tuning.r, dtype=torch.float64))
+    Q, P0_xx, H, R = tuning.matrices(k)
     data = [(e, e.u.to(torch.float64), _measurements(e, tuning.measure)) for e in exps]
     flow = make_propagator(model, tuning.substeps)
     step_fn = make_step(flow, compile=tuning.compile)
@@ -228,11 +244,7 @@ def identify_ekf(
         theta, P_theta, history = start[0].clone(), start[1].clone(), list(start[2])
     else:
         theta = model.get_theta()
-        p0 = _vector(tuning.p0_theta, k, "p0_theta")
-        if tuning.p0_relative:
-            size = torch.where(model.log_mask(), torch.ones_like(theta), theta.abs())
-            p0 = p0 * size.clamp_min(1e-6 * float(size.max())) ** 2
-        P_theta = torch.diag(p0)
+        P_theta = tuning.initial_P_theta(model, theta)
         history = []
 
     def result_for(th: Tensor, Pt: Tensor, hist: list[PassRecord], converged: bool) -> EKFResult:
