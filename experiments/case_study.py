@@ -169,34 +169,6 @@ def load_runs(ckpt_dir: pathlib.Path, trained: dict[str, float]) -> dict[str, Ru
     return runs
 
 
-class _BatchedArm(ExportedArm):
-    """`torchfric.export.ExportedArm` (the same RK4 3/8 rule, sub-steps and exact zero-order hold
-    as `torchfric.simulate`) with a batch of inputs: B experiments of equal length in one loop."""
-
-    @torch.jit.export
-    def simulate_batch(self, t: Tensor, u: Tensor, x0: Tensor) -> Tensor:
-        """`t (N,)`, `u (N, B)`, `x0 (B, 2)` → states `(N, B, 2)`."""
-        n = t.shape[0]
-        out = torch.empty(n, x0.shape[0], 2, dtype=x0.dtype)
-        x = x0.clone()
-        out[0] = x
-        s = self.substeps
-        for k in range(n - 1):
-            span = t[k + 1] - t[k]
-            uk = u[k]
-            for j in range(s):
-                ta = t[k] + span * (float(j) / s)
-                tb = t[k + 1] if j == s - 1 else t[k] + span * (float(j + 1) / s)
-                h = tb - ta
-                k1 = self.field(x, uk)
-                k2 = self.field(x + h * k1 * (1.0 / 3.0), uk)
-                k3 = self.field(x + h * (k2 - k1 * (1.0 / 3.0)), uk)
-                k4 = self.field(x + h * (k1 - k2 + k3), uk)
-                x = x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
-            out[k + 1] = x
-        return out
-
-
 def simulate_many(model: ArmModel, exps: list[Experiment]) -> list[Tensor]:
     """Open-loop simulations `(N, 2)` of equal-length experiments from their measured x0.
 
@@ -206,7 +178,7 @@ def simulate_many(model: ArmModel, exps: list[Experiment]) -> list[Tensor]:
     assert len({e.n for e in exps}) == 1 and all(torch.equal(e.t, exps[0].t) for e in exps)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        sim = torch.jit.script(_BatchedArm(model, auto_substeps(model, exps[0].dt)))
+        sim = torch.jit.script(ExportedArm(model, auto_substeps(model, exps[0].dt)))
     u = torch.stack([e.u for e in exps], -1)
     x0 = torch.stack([torch.stack([e.q[0], e.qdot[0]]) for e in exps])
     with torch.no_grad():

@@ -87,25 +87,31 @@ class ExportedArm(nn.Module):
     @torch.jit.export
     def simulate(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
         """States at the sample times t (N,) for ZOH input u (N,) from x0 = [q0, qdot0]."""
+        out = self.simulate_batch(t, u, x0)
+        return out[:, 0], out[:, 1]
+
+    @torch.jit.export
+    def simulate_batch(self, t: Tensor, u: Tensor, x0: Tensor) -> Tensor:
+        """`simulate` for any batch shape: `u (N, ...)`, `x0 (..., 2)` → states `(N, ..., 2)`."""
         n = t.shape[0]
-        out = torch.empty(n, 2, dtype=x0.dtype)
+        out = torch.empty([n] + x0.shape, dtype=x0.dtype)
         x = x0.clone()
         out[0] = x
         s = self.substeps
         for k in range(n - 1):
             span = t[k + 1] - t[k]
+            uk = u[k]
             for j in range(s):
                 ta = t[k] + span * (float(j) / s)
                 tb = t[k + 1] if j == s - 1 else t[k] + span * (float(j + 1) / s)
                 h = tb - ta
-                uk = u[k]
                 k1 = self.field(x, uk)
                 k2 = self.field(x + h * k1 * (1.0 / 3.0), uk)
                 k3 = self.field(x + h * (k2 - k1 * (1.0 / 3.0)), uk)
                 k4 = self.field(x + h * (k1 - k2 + k3), uk)
                 x = x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
             out[k + 1] = x
-        return out[:, 0], out[:, 1]
+        return out
 
     def forward(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
         return self.simulate(t, u, x0)
