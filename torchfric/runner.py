@@ -261,6 +261,21 @@ class _RunLogger(EKFCallback):
         self.writer.flush()
         return fits
 
+    def snapshot(
+        self, path: pathlib.Path, model: ArmModel, state: dict[str, Any], metrics: dict[str, Any]
+    ) -> None:
+        """An incomplete checkpoint (pass/epoch snapshot, last good pass), written atomically."""
+        payload = build_checkpoint(
+            model,
+            config=self.cfg,
+            estimator_state=state,
+            metrics=metrics,
+            data_fingerprints=self.fingerprints,
+            name=self.cfg.name,
+            complete=False,
+        )
+        save_checkpoint(path, payload)
+
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
         scalars = {
             "ekf/trace_P": record.trace_P,
@@ -288,17 +303,12 @@ class _RunLogger(EKFCallback):
             + (f", {fit_txt}" if fit_txt else "")
             + "\n"
         )
-        snap = _estimator_payload(result, record.index)
-        payload = build_checkpoint(
+        self.snapshot(
+            self.run_dir / "passes" / f"pass_{record.index:03d}.pt",
             result.model,
-            config=self.cfg,
-            estimator_state=snap,
-            metrics={"validation": fits},
-            data_fingerprints=self.fingerprints,
-            name=self.cfg.name,
-            complete=False,
+            _estimator_payload(result, record.index),
+            {"validation": fits},
         )
-        save_checkpoint(self.run_dir / "passes" / f"pass_{record.index:03d}.pt", payload)
         self.t_pass = time.perf_counter()
         return None
 
@@ -342,7 +352,6 @@ def _run_ekf(
     logger: _RunLogger,
     est: dict[str, Any] | None,
     run: pathlib.Path,
-    fingerprints: dict[str, str],
 ):  # type: ignore[no-untyped-def]
     if cfg.estimator.ensemble > 0 or (est is not None and est.get("method") == "ekf_ensemble"):
         return _run_ensemble(cfg, model, train_exps, logger, est, run)
@@ -356,16 +365,12 @@ def _run_ekf(
     except DivergenceError as err:
         last = err.last_good
         if isinstance(last, EKFResult) and last.history:
-            payload = build_checkpoint(
+            logger.snapshot(
+                run / "last_good.pt",
                 last.model,
-                config=cfg,
-                estimator_state=_estimator_payload(last, last.passes),
-                metrics={"diverged": str(err)},
-                data_fingerprints=fingerprints,
-                name=cfg.name,
-                complete=False,
+                _estimator_payload(last, last.passes),
+                {"diverged": str(err)},
             )
-            save_checkpoint(run / "last_good.pt", payload)
             raise DivergenceError(
                 f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
             ) from None
@@ -414,16 +419,7 @@ class _EnsembleLogger(EnsembleCallback):
             + ", ".join(f"{c} {s}" for s, c in counts.items())
             + f"; {spread}\n"
         )
-        payload = build_checkpoint(
-            self.model,
-            config=b.cfg,
-            estimator_state=state,
-            metrics={},
-            data_fingerprints=b.fingerprints,
-            name=b.cfg.name,
-            complete=False,
-        )
-        save_checkpoint(b.run_dir / "passes" / f"ensemble_{pass_index:03d}.pt", payload)
+        b.snapshot(b.run_dir / "passes" / f"ensemble_{pass_index:03d}.pt", self.model, state, {})
         b.t_pass = time.perf_counter()
         return None
 
@@ -509,16 +505,12 @@ class _OELogger(OECallback):
                 + (f", {fit_txt}" if fit_txt else "")
                 + "\n"
             )
-            payload = build_checkpoint(
+            b.snapshot(
+                b.run_dir / "passes" / f"epoch_{record.index:05d}.pt",
                 result.model,
-                config=b.cfg,
-                estimator_state=_oe_payload(result, record.index),
-                metrics={"validation": record.val_fit, "init": getattr(b, "init_kind", "")},
-                data_fingerprints=b.fingerprints,
-                name=b.cfg.name,
-                complete=False,
+                _oe_payload(result, record.index),
+                {"validation": record.val_fit, "init": getattr(b, "init_kind", "")},
             )
-            save_checkpoint(b.run_dir / "passes" / f"epoch_{record.index:05d}.pt", payload)
         b.writer.flush()
         return None
 
@@ -544,7 +536,6 @@ def _run_output_error(
     logger: _RunLogger,
     est: dict[str, Any] | None,
     run: pathlib.Path,
-    fingerprints: dict[str, str],
 ):  # type: ignore[no-untyped-def]
     start = None
     if est is not None:
@@ -647,10 +638,10 @@ def train(
             )
         logger.init_kind = init_kind
         if cfg.estimator.method == "ekf":
-            final, state, extra = _run_ekf(cfg, model, train_exps, logger, est, run, fingerprints)
+            final, state, extra = _run_ekf(cfg, model, train_exps, logger, est, run)
         else:
             final, state, extra = _run_output_error(
-                cfg, model, train_exps, val_exps, logger, est, run, fingerprints
+                cfg, model, train_exps, val_exps, logger, est, run
             )
         seconds = time.perf_counter() - t_start
         metrics: dict[str, Any] = {
