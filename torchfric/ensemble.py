@@ -61,6 +61,7 @@ __all__ = [
     "random_thetas",
     "member_grid",
     "make_batched_step",
+    "make_masked_step",
     "identify_ekf_ensemble",
     "simulate_members",
 ]
@@ -157,6 +158,50 @@ def make_batched_step(model: ArmModel, substeps: int, *, compile: bool = False) 
     eager = make_step(make_propagator(model, substeps))
     batched = vmap(eager, in_dims=(0, 0, None, None, None, 0, None, 0, None))
     return compile_with_fallback(batched) if compile else batched
+
+
+def make_masked_step(model: ArmModel, substeps: int, *, compile: bool = False) -> StepFn:
+    """`make_batched_step` plus the ensemble's per-sample bookkeeping, as one function (one
+    compiled graph, so the masking costs no extra per-sample dispatch):
+
+    ``fn(x, P, good, fail_at, sum_e2, sum_nis, loglik, j, u, y, dt, Q, H, R, bound)`` returns the
+    same seven state tensors, updated: members still `good` take the step and add its
+    diagnostics; a member whose step is unhealthy keeps its last belief, records sample `j`
+    (a 0-d tensor) in `fail_at` and drops out of `good`.
+    """
+    batched = make_batched_step(model, substeps)
+
+    def masked(
+        x: Tensor,
+        P: Tensor,
+        good: Tensor,
+        fail_at: Tensor,
+        sum_e2: Tensor,
+        sum_nis: Tensor,
+        loglik: Tensor,
+        j: Tensor,
+        u: Tensor,
+        y: Tensor,
+        dt: Tensor,
+        Q: Tensor,
+        H: Tensor,
+        R: Tensor,
+        bound: Tensor,
+    ):  # type: ignore[no-untyped-def]
+        x1, P1, e, nis, ll, ok = batched(x, P, u, y, dt, Q, H, R, bound)
+        fail_at = torch.where(good & ~ok & (fail_at < 0), j, fail_at)
+        good = good & ok
+        return (
+            torch.where(good[:, None], x1, x),
+            torch.where(good[:, None, None], P1, P),
+            good,
+            fail_at,
+            sum_e2 + torch.where(good[:, None], e * e, 0.0),
+            sum_nis + torch.where(good, nis, 0.0),
+            loglik + torch.where(good, ll, 0.0),
+        )
+
+    return compile_with_fallback(masked) if compile else masked
 
 
 def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]
@@ -339,7 +384,7 @@ def identify_ekf_ensemble(
     P_theta = tuning.initial_P_theta(model, thetas)
     theta = thetas.clone()
     bound = torch.tensor(tuning.theta_bound, dtype=f64)
-    step_fn = make_batched_step(model, tuning.substeps, compile=tuning.compile)
+    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
     data = [(e, e.u.to(f64), _measurements(e, tuning.measure)) for e in exps]
     total = sum(e.n for e in exps)
 
@@ -413,15 +458,12 @@ def identify_ekf_ensemble(
             sum_e2 += torch.where(good[:, None], e * e, 0.0)
             sum_nis += torch.where(good, nis, 0.0)
             loglik += torch.where(good, ll, 0.0)
+            index = torch.arange(exp.n)
             for j in range(1, exp.n):
-                x1, P1, e, nis, ll, ok = step_fn(x, P, u[j - 1], y[j], dt, Qk, H, Rk, bound)
-                fail_at = torch.where(good & ~ok & (fail_at < 0), j, fail_at)
-                good = good & ok
-                x = torch.where(good[:, None], x1, x)
-                P = torch.where(good[:, None, None], P1, P)
-                sum_e2 += torch.where(good[:, None], e * e, 0.0)
-                sum_nis += torch.where(good, nis, 0.0)
-                loglik += torch.where(good, ll, 0.0)
+                x, P, good, fail_at, sum_e2, sum_nis, loglik = step_fn(
+                    x, P, good, fail_at, sum_e2, sum_nis, loglik, index[j],
+                    u[j - 1], y[j], dt, Qk, H, Rk, bound,
+                )  # fmt: skip
                 if j % progress_every == 0:
                     callback.on_progress(p, samples + j, total)
             for i in torch.nonzero(was_good & ~good).flatten().tolist():
