@@ -76,9 +76,15 @@ def _as_numpy(x: ArrayLike, what: str) -> np.ndarray:
     return arr.astype(np.float64)
 
 
-def _as_tensor(arr: np.ndarray) -> Tensor:
-    """A float64 CPU tensor that owns a copy of `arr`."""
-    return torch.from_numpy(np.array(arr, dtype=np.float64, copy=True))
+def _as_tensor(arr: ArrayLike) -> Tensor:
+    """A float64 CPU tensor that owns a copy of `arr`, in torch's own (64-byte aligned) memory.
+
+    Not `torch.from_numpy`: numpy's buffers are only 16-byte aligned, at an address that
+    changes from process to process, and the compiled EKF step rounds differently for
+    differently aligned inputs. The filter amplifies one-ulp differences (a stick/slip event
+    on one sample or the next), so the same run in two processes gave θ differing by 3e-6.
+    """
+    return torch.tensor(np.asarray(arr, dtype=np.float64), dtype=torch.float64)
 
 
 def _check_step(dt: float, what: str) -> float:
@@ -604,7 +610,7 @@ def highpass_derivative(q: ArrayLike, dt: float, cutoff_hz: float = 200.0) -> Te
     dq = np.diff(qa, axis=-1, prepend=qa[..., :1])
     # v[k] = p·v[k−1] + g·Δq[k], zero initial state
     v = scipy.signal.lfilter([g], [1.0, -p], dq, axis=-1)
-    return torch.from_numpy(np.ascontiguousarray(v, dtype=np.float64))
+    return _as_tensor(v)
 
 
 def _zero_phase_lowpass(
@@ -647,7 +653,7 @@ def zero_phase_derivative(
     """
     qf = _zero_phase_lowpass(q, dt, cutoff_hz, order, "zero_phase_derivative")
     v = np.gradient(qf, dt, axis=-1, edge_order=2)
-    return torch.from_numpy(np.ascontiguousarray(v, dtype=np.float64))
+    return _as_tensor(v)
 
 
 def zero_phase_acceleration(
@@ -662,7 +668,7 @@ def zero_phase_acceleration(
     qf = _zero_phase_lowpass(q, dt, cutoff_hz, order, "zero_phase_acceleration")
     v = np.gradient(qf, dt, axis=-1, edge_order=2)
     a = np.gradient(v, dt, axis=-1, edge_order=2)
-    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float64))
+    return _as_tensor(a)
 
 
 VELOCITY_METHODS: dict[str, Callable[[ArrayLike, float, float], Tensor]] = {
