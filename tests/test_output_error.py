@@ -22,6 +22,8 @@ from torchfric.output_error import (
     OECallback,
     OETuning,
     _draw,
+    _full_loss,
+    _same_grid,
     _generator,
     _prepare,
     _scales,
@@ -201,6 +203,35 @@ def test_positive_parameters_stay_positive(short: Experiment) -> None:
     res = identify_output_error(start, short, _quick(epochs=3, lr=1.0, lr_final=1.0, clip=0.0))
     phys = res.model.physical_parameters()
     assert phys["inertia"] > 0 and phys["viscous"] > 0
+
+
+def test_full_length_batches_files_on_one_grid_without_changing_the_loss(
+    short: Experiment,
+) -> None:
+    """Files with identical time vectors run as one batch; the loss and its gradient equal the
+    sample-weighted sum of one simulation per file (and a file on another grid stays apart)."""
+    model = _perturbed(_true_model())
+    a, b = short.slice(480, 540), short.slice(540, 600)  # (it moves from sample ~500 on)
+    b = Experiment(t=a.t, u=b.u, q=b.q, qdot=b.qdot, name="b")  # re-timed onto a's grid
+    c = short.slice(500, 550)  # another length: its own group
+    data = _prepare([a, b, c], "experiments")
+    assert [len(g) for g in _same_grid(data)] == [2, 1]
+    scale = _scales(data)
+    w = torch.tensor([1.0, 0.5], dtype=torch.float64)
+
+    def loss(ds):  # type: ignore[no-untyped-def]
+        theta = model.get_theta().requires_grad_(True)
+        f = _full_loss(model, ds, theta, 1, scale, w, False)
+        f.backward()
+        return f.detach(), theta.grad
+
+    together, g_together = loss(data)
+    parts = [loss([d]) for d in data]
+    n = [d.y.shape[0] - 1 for d in data]
+    expect = sum(f * k for (f, _), k in zip(parts, n, strict=True)) / sum(n)
+    g_expect = sum(g * k for (_, g), k in zip(parts, n, strict=True)) / sum(n)
+    assert float(together) == pytest.approx(float(expect), rel=1e-12)
+    torch.testing.assert_close(g_together, g_expect, rtol=1e-10, atol=1e-14)
 
 
 def test_full_length_and_adjoint_gradients_agree(short: Experiment) -> None:

@@ -326,13 +326,33 @@ def _full_loss(
     weights: Tensor,
     adjoint: bool,
 ) -> Tensor:
-    """Sample-weighted loss of full-length simulations of every experiment."""
+    """Sample-weighted loss of full-length simulations of every experiment.
+
+    Experiments on the same time grid (e.g. repeats of one recording protocol) are simulated as
+    one batch: one solver loop instead of one per file.
+    """
     total = sum(d.y.shape[0] - 1 for d in data)
     out = theta.new_zeros(())
-    for d in data:
-        sim = _rollout(model, d.t, d.u, d.y[0], theta, steps, adjoint)
-        out = out + _loss(sim, d.y, scale, weights) * ((d.y.shape[0] - 1) / total)
+    for group in _same_grid(data):
+        t = group[0].t
+        u = torch.stack([d.u for d in group], dim=1)  # (N, B)
+        y = torch.stack([d.y for d in group], dim=1)  # (N, B, 2)
+        sim = _rollout(model, t, u, y[0], theta, steps, adjoint)
+        out = out + _loss(sim, y, scale, weights) * (len(group) * (t.shape[0] - 1) / total)
     return out
+
+
+def _same_grid(data: Sequence[_Data]) -> list[list[_Data]]:
+    """`data` grouped by identical time vectors, in first-seen order."""
+    groups: list[list[_Data]] = []
+    for d in data:
+        for g in groups:
+            if g[0].t.shape == d.t.shape and torch.equal(g[0].t, d.t):
+                g.append(d)
+                break
+        else:
+            groups.append([d])
+    return groups
 
 
 def _generator(seed: int, epoch: int) -> torch.Generator:
