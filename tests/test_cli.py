@@ -196,6 +196,11 @@ def test_generate_writes_rig_files(
         (["--set", "model.size=4", "--set", "model.friction=polytopic"], "odd"),
         (["--set", "estimator.method=output_error", "--set", "estimator.lr_final=1.0"], "lr_final"),
         (["--set", "estimator.schedule=[50, 1]"], "schedule"),
+        (
+            ["--set", "estimator.method=output_error", "--set", "estimator.learn_states=true",
+             "--set", "estimator.window=0"],
+            "learn_states",
+        ),  # fmt: skip
     ],
 )
 def test_bad_input_is_one_line_error(
@@ -288,6 +293,31 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     torch.testing.assert_close(killed_p1, fixture_p1, rtol=1e-4, atol=0)
     # A temp file can only be one the kill interrupted mid-write; it never replaces a snapshot.
     assert all(name.startswith(".") for name in leftovers)
+
+
+def test_output_error_resume_continues_from_the_latest_not_the_best_theta(
+    tmp_path: pathlib.Path,
+) -> None:
+    """An output-error run (multiple shooting with learned states) resumed from an epoch
+    snapshot equals the uninterrupted run bit for bit, also when validation peaked earlier
+    (here at the pre-fit, epoch 0): the snapshot's model is the best θ, the resume must
+    continue from the latest θ and the latest learned states."""
+    cfg = _config(tmp_path, name="oe")
+    args = [
+        *SHORT[:4],
+        "--set", "estimator.method=output_error", "--set", "estimator.learn_states=true",
+        "--set", "estimator.window=50", "--set", "estimator.epochs=4",
+        "--set", "estimator.eval_every=2", "--set", "estimator.batch=8",
+    ]  # fmt: skip
+    assert main(["train", str(cfg), "--quiet", *args]) == 0
+    full = read_checkpoint(tmp_path / "checkpoints" / "oe.pt")["estimator"]["state"]
+    (tmp_path / "runs" / "oe" / "passes" / "epoch_00004.pt").unlink()
+    assert main(["train", str(cfg), "--quiet", *args, "--resume", str(tmp_path / "runs" / "oe")]) == 0
+    resumed = read_checkpoint(tmp_path / "checkpoints" / "oe.pt")["estimator"]["state"]
+    assert full["best_epoch"] == resumed["best_epoch"]
+    assert torch.equal(full["theta"], resumed["theta"])
+    assert torch.equal(full["shooting"], resumed["shooting"])
+    assert [r["theta"] for r in full["history"]] == [r["theta"] for r in resumed["history"]]
 
 
 def test_fresh_run_clears_an_earlier_runs_snapshots(

@@ -399,6 +399,8 @@ class EstimatorConfig:
             theta_bound: the EKF tuning, see `torchfric.identify.EKFTuning` (`ekf_tuning()`).
             p0_theta and q_theta are one number for every θ entry or one per entry.
         epochs, lr, window, batch: output-error training (``window = 0``: full length).
+        learn_states, continuity: multiple shooting with learned window start states and a
+            continuity penalty (output error, fixed window); see `torchfric.output_error`.
         ensemble: number of random starts of an EKF ensemble (0: a single filter); with
             ensemble_spread (×/÷ box around the initial θ), ensemble_q_scales and
             ensemble_r_scales (tuning grid) — see `torchfric.ensemble.EnsembleSpec`.
@@ -430,6 +432,8 @@ class EstimatorConfig:
     eval_every: int = 10
     schedule: tuple[int, ...] = ()
     adjoint: bool = False
+    learn_states: bool = False
+    continuity: float = 1.0
     ensemble: int = 0
     ensemble_spread: float = 3.0
     ensemble_q_scales: tuple[float, ...] = (1.0,)
@@ -485,6 +489,8 @@ class EstimatorConfig:
             )
         c.set("schedule", tuple(int(v) for v in sched))
         c.boolean("adjoint")
+        c.boolean("learn_states")
+        c.number("continuity", ge=0.0)
         c.integer("ensemble", ge=0)
         c.number("ensemble_spread", ge=1.0)
         for key in ("ensemble_q_scales", "ensemble_r_scales"):
@@ -516,6 +522,8 @@ class EstimatorConfig:
             substeps=self.substeps,
             schedule=self.schedule,
             adjoint=self.adjoint,
+            learn_states=self.learn_states,
+            continuity=self.continuity,
         )
 
     def ensemble_spec(self, seed: int = 0) -> EnsembleSpec:

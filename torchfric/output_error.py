@@ -23,6 +23,13 @@ Horizons:
   `x0 (B, 2)`): per-op overhead dominates, so B windows cost about as much as one. Short windows
   keep the loss surface free of the long-horizon local minima; `schedule` lengthens them in stages
   (short to long, epochs split evenly).
+- ``learn_states = true`` (with a fixed ``window = W``): multiple shooting proper. Every experiment
+  is tiled into windows of W samples that share their end points (starts 0, W−1, 2(W−1), …); each
+  tile starts from a *learned* state ``x0_j = [q, q̇]_measured + s ⊙ δ_j`` (δ trained with θ by the
+  same optimiser, starting at 0), the loss also scores sample 0, and a continuity penalty
+  ``continuity · mean_j Σ_c ((x̂_j(end) − x0_{j+1}) / s_c)²`` ties each tile's simulated end to
+  the next tile's start. The reconstructed q̇ is then only the starting guess of the window
+  states, not a hard initial condition; as the penalty grows the tiles join into one trajectory.
 
 Gradients by backpropagation through the fixed-grid solver (default), or by the adjoint method
 (`torchdiffeq.odeint_adjoint`, memory independent of the horizon, about twice the time).
@@ -82,6 +89,9 @@ class OETuning:
         schedule: window lengths per stage, short to long; overrides `window`; epochs split
             evenly over the stages (each entry >= 2, or 0 for full length).
         adjoint: gradients by `torchdiffeq.odeint_adjoint` instead of backpropagation.
+        learn_states: multiple shooting with learned window initial states (module docstring);
+            needs a fixed `window` >= 2 and no `schedule`.
+        continuity: weight of the continuity penalty between consecutive tiles (learn_states).
     """
 
     epochs: int = 200
@@ -98,6 +108,8 @@ class OETuning:
     substeps: int | str = 1
     schedule: tuple[int, ...] = ()
     adjoint: bool = False
+    learn_states: bool = False
+    continuity: float = 1.0
 
     def check(self, k: int) -> None:
         """Validate against a model with k parameters; raises TorchfricError naming the key."""
@@ -143,6 +155,18 @@ class OETuning:
             )
         if not isinstance(self.adjoint, bool):
             raise _bad("adjoint", self.adjoint, "true or false")
+        if not isinstance(self.learn_states, bool):
+            raise _bad("learn_states", self.learn_states, "true or false")
+        c = self.continuity
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c) or c < 0:
+            raise _bad("continuity", c, "a finite number >= 0")
+        if self.learn_states and (self.window < 2 or s):
+            raise _bad(
+                "learn_states",
+                self.learn_states,
+                "false, or true with a fixed window >= 2 and no schedule (the learned states "
+                f"belong to one tiling; got window = {self.window}, schedule = {list(s)})",
+            )
 
     def window_at(self, epoch: int) -> int:
         """Window length of (1-based) `epoch`: the schedule's stage, else `window`."""
@@ -194,6 +218,24 @@ class OEResult:
     best_epoch: int = 0  # epoch whose θ is returned (0 = the initial guess)
     stopped_early: bool = False  # patience ran out or the callback asked to stop
     optimizer_state: dict[str, Any] | None = None  # Adam state after the last epoch (resume)
+    shooting: Tensor | None = None  # (tiles, 2) learned start offsets δ (learn_states), in units of s
+    initial_theta: Tensor | None = None  # θ at epoch 0, the early stop's baseline (resume)
+
+    def initial_states(self, experiments: Experiment | Sequence[Experiment]) -> Tensor:
+        """The learned window start states ``[q, q̇]`` (tiles, 2) of the `learn_states` tiling of
+        `experiments` (the training experiments, in training order)."""
+        if self.shooting is None:
+            raise TorchfricError("this result has no learned states (learn_states was off)")
+        data = _prepare([experiments] if isinstance(experiments, Experiment) else experiments, "x")
+        window = self.history[-1].window if self.history else 0
+        tiles = _tiles(data, window)
+        if len(tiles) != self.shooting.shape[0]:
+            raise TorchfricError(
+                f"these experiments give {len(tiles)} tiles, the result learned "
+                f"{self.shooting.shape[0]}; pass the training experiments"
+            )
+        y0 = torch.stack([data[i].y[st] for i, st in tiles])
+        return y0 + _scales(data) * self.shooting
 
     @property
     def epochs(self) -> int:
@@ -317,6 +359,45 @@ def _window_loss(
     return _loss(sim, y, scale, weights)
 
 
+def _shooting_loss(
+    model: ArmModel,
+    data: Sequence[_Data],
+    tiles: Sequence[tuple],
+    picks: Sequence[int],
+    window: int,
+    theta: Tensor,
+    delta: Tensor,
+    steps: int,
+    scale: Tensor,
+    weights: Tensor,
+    continuity: float,
+    adjoint: bool,
+) -> Tensor:
+    """Multiple-shooting loss of the tiles `picks` (indices into `tiles`) from learned starts
+    ``y_start + scale·δ``: data term over all W samples plus the continuity penalty."""
+    u = torch.stack([data[tiles[j][0]].u[tiles[j][1] : tiles[j][1] + window] for j in picks], 1)
+    y = torch.stack([data[tiles[j][0]].y[tiles[j][1] : tiles[j][1] + window] for j in picks], 1)
+    idx = torch.tensor(list(picks))
+    x0 = y[0] + scale * delta[idx]
+    t = torch.arange(window, dtype=torch.float64) * data[tiles[picks[0]][0]].dt
+    sim = _rollout(model, t, u, x0, theta, steps, adjoint)
+    e = (sim - y) / scale
+    out = (e * e * weights).sum(-1).mean()
+    # The next tile of the same experiment starts where this one ends (shared sample).
+    nxt = [
+        (b, j + 1)
+        for b, j in enumerate(picks)
+        if j + 1 < len(tiles) and tiles[j + 1] == (tiles[j][0], tiles[j][1] + window - 1)
+    ]
+    if continuity > 0 and nxt:
+        b_idx = torch.tensor([b for b, _ in nxt])
+        n_idx = torch.tensor([n for _, n in nxt])
+        starts = torch.stack([data[tiles[n][0]].y[tiles[n][1]] for _, n in nxt])
+        gap = (sim[-1, b_idx] - (starts + scale * delta[n_idx])) / scale
+        out = out + continuity * (gap * gap).sum(-1).sum() / len(picks)
+    return out
+
+
 def _full_loss(
     model: ArmModel,
     data: Sequence[_Data],
@@ -368,7 +449,8 @@ def identify_output_error(
     *,
     validation: Experiment | Sequence[Experiment] | None = None,
     callback: OECallback | None = None,
-    start: tuple[Tensor, list[EpochRecord], dict[str, Any] | None] | None = None,
+    start: tuple | None = None,
+    initial_theta: Tensor | None = None,
 ) -> OEResult:
     """Identify θ of `model` by minimising the simulation error (module docstring).
 
@@ -381,8 +463,12 @@ def identify_output_error(
         validation: experiments for early stopping on the mean validation FIT (q and q̇), each
             simulated open loop from its measured initial state; the best θ is returned.
         callback: `OECallback` per epoch.
-        start: resume from ``(θ, history, optimizer_state)`` of completed epochs (`OEResult`'s
-            `theta`, `history`, `optimizer_state`); equals an uninterrupted run.
+        start: resume from ``(θ, history, optimizer_state[, shooting])`` of completed epochs
+            (`OEResult`'s `theta`, `history`, `optimizer_state`, `shooting`); equals an
+            uninterrupted run.
+        initial_theta: with `start`, the θ the run began from (`OEResult.initial_theta`): its
+            validation score is epoch 0's, the baseline early stopping compares against.
+            Without it a resumed run only knows the recorded epochs.
 
     Returns:
         `OEResult`: fitted copy of the model, θ, per-epoch `EpochRecord`s, best epoch.
@@ -421,7 +507,21 @@ def identify_output_error(
     theta = torch.nn.Parameter(torch.as_tensor(theta0, dtype=torch.float64).detach().clone())
     if theta.numel() != k:
         raise TorchfricError(f"start theta has {theta.numel()} entries, the model has {k}")
-    opt = torch.optim.Adam([theta], lr=tuning.lr)
+    params = [theta]
+    tiles: list[tuple] = []
+    delta = None
+    if tuning.learn_states:
+        tiles = _tiles(data, tuning.window)
+        saved = start[3] if start is not None and len(start) > 3 else None
+        d0 = torch.zeros(len(tiles), 2, dtype=torch.float64) if saved is None else saved
+        delta = torch.nn.Parameter(torch.as_tensor(d0, dtype=torch.float64).detach().clone())
+        if delta.shape != (len(tiles), 2):
+            raise TorchfricError(
+                f"start shooting states have shape {tuple(delta.shape)}, the data give "
+                f"{len(tiles)} tiles of {tuning.window} samples"
+            )
+        params.append(delta)
+    opt = torch.optim.Adam(params, lr=tuning.lr)
     if opt_state is not None:
         opt.load_state_dict(opt_state)
     work = copy.deepcopy(model)
@@ -437,8 +537,16 @@ def identify_output_error(
             out[name] = {"fit_q": s.fit_q, "fit_qdot": s.fit_qdot}
         return out
 
-    # Best θ so far: by validation score when validating, else simply the latest.
+    theta_init = theta.detach().clone() if not history else initial_theta
+    if theta_init is not None:
+        theta_init = torch.as_tensor(theta_init, dtype=torch.float64).detach().clone()
+    # Best θ so far: by validation score when validating, else simply the latest. Epoch 0 (the
+    # initial θ) is the baseline; a resumed run replays the recorded epochs after it.
     best_epoch, best_theta, best_score, since = 0, theta.detach().clone(), -math.inf, 0
+    if vals and theta_init is not None:
+        fit0 = validate(theta_init)
+        best_theta = theta_init.clone()
+        best_score = EpochRecord(0, math.nan, {}, 0.0, 0.0, fit0).val_score or -math.inf
     for r in history:
         if r.val_score is not None:
             if r.val_score > best_score:
@@ -452,15 +560,19 @@ def identify_output_error(
                 since += 1
     if not vals and history:
         best_epoch = history[-1].index
-    if vals and not history:
-        fit0 = validate(theta)
-        best_score = EpochRecord(0, math.nan, {}, 0.0, 0.0, fit0).val_score or -math.inf
 
     def result(stopped: bool) -> OEResult:
         th = best_theta if vals else theta.detach().clone()
         fitted = copy.deepcopy(model).set_theta(th)
         return OEResult(
-            fitted, th.clone(), list(history), best_epoch, stopped, copy.deepcopy(opt.state_dict())
+            fitted,
+            th.clone(),
+            list(history),
+            best_epoch,
+            stopped,
+            copy.deepcopy(opt.state_dict()),
+            None if delta is None else delta.detach().clone(),
+            theta_init,
         )
 
     def record(index, loss, lr, t0, window, force_eval=False) -> EpochRecord:
@@ -488,7 +600,14 @@ def identify_output_error(
             g["lr"] = lr
         steps = _substeps(model, theta, dts[0], tuning.substeps)
         opt.zero_grad()
-        if window == 0:
+        if delta is not None:
+            gen = _generator(tuning.seed, epoch)
+            chosen = torch.randperm(len(tiles), generator=gen)[: tuning.batch].sort().values
+            loss = _shooting_loss(
+                model, data, tiles, chosen.tolist(), window, theta, delta, steps, scale,
+                weights, tuning.continuity, tuning.adjoint,
+            )  # fmt: skip
+        elif window == 0:
             loss = _full_loss(model, data, theta, steps, scale, weights, tuning.adjoint)
         else:
             picks = _draw(data, window, tuning.batch, _generator(tuning.seed, epoch))
@@ -496,16 +615,18 @@ def identify_output_error(
                 model, data, picks, window, theta, steps, scale, weights, tuning.adjoint
             )
         loss.backward()
-        if not (torch.isfinite(loss) and bool(torch.isfinite(theta.grad).all())):
+        grads_ok = all(bool(torch.isfinite(p.grad).all()) for p in params)
+        if not (torch.isfinite(loss) and grads_ok):
             raise DivergenceError(
                 f"output-error training diverged in epoch {epoch} (window {window}): loss = "
-                f"{float(loss):.4g}, gradient finite = {bool(torch.isfinite(theta.grad).all())}. "
+                f"{float(loss):.4g}, gradient finite = {grads_ok}. "
                 "Fix: lower lr, use shorter windows, more substeps, or a better start "
                 "(model.init = 'prefit' or an EKF result); the last good parameters are kept",
                 last_good=result(False),
             )
         if tuning.clip > 0:
-            torch.nn.utils.clip_grad_norm_([theta], tuning.clip)
+            for p in params:  # θ and the shooting states each to the threshold
+                torch.nn.utils.clip_grad_norm_([p], tuning.clip)
         opt.step()
         rec = record(epoch, float(loss.detach()), lr, t0, window, epoch == tuning.epochs)
         history.append(rec)
@@ -535,7 +656,7 @@ def identify_output_error(
         steps = _substeps(model, theta, dts[0], tuning.substeps)
         picks = _tiles(data, window) if window else []
         lbfgs = torch.optim.LBFGS(
-            [theta],
+            params,
             lr=1.0,
             max_iter=tuning.lbfgs_steps,
             tolerance_grad=1e-12,
@@ -545,7 +666,12 @@ def identify_output_error(
 
         def closure() -> Tensor:
             lbfgs.zero_grad()
-            if window == 0:
+            if delta is not None:
+                f = _shooting_loss(
+                    model, data, tiles, list(range(len(tiles))), window, theta, delta, steps,
+                    scale, weights, tuning.continuity, tuning.adjoint,
+                )  # fmt: skip
+            elif window == 0:
                 f = _full_loss(model, data, theta, steps, scale, weights, tuning.adjoint)
             else:
                 f = _window_loss(
@@ -555,12 +681,13 @@ def identify_output_error(
             return f
 
         before = float(closure().detach())
-        theta_before = theta.detach().clone()
+        params_before = [p.detach().clone() for p in params]
         lbfgs.step(closure)
         after = float(closure().detach())
         if not math.isfinite(after) or after > before:
             with torch.no_grad():
-                theta.copy_(theta_before)
+                for p, b in zip(params, params_before, strict=True):
+                    p.copy_(b)
             after = before
         rec = record(tuning.epochs + 1, after, 1.0, t0, window, force_eval=True)
         history.append(rec)

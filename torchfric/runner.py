@@ -525,6 +525,10 @@ def _oe_payload(result: OEResult, epoch: int) -> dict[str, Any]:
     }
     if result.optimizer_state is not None:
         state["optimizer_state"] = result.optimizer_state
+    if result.shooting is not None:
+        state["shooting"] = result.shooting.clone()
+    if result.initial_theta is not None:
+        state["initial_theta"] = result.initial_theta.clone()
     return state
 
 
@@ -542,7 +546,10 @@ def _run_output_error(
         history = [
             EpochRecord(**{k: v for k, v in r.items() if k != "val_score"}) for r in est["history"]
         ]
-        start = (est["theta"], history, est.get("optimizer_state"))
+        # Continue from the latest θ (the last record's), not the best-by-validation θ the
+        # snapshot reports as its model: they differ whenever validation peaked earlier.
+        latest = torch.tensor(history[-1].theta, dtype=torch.float64) if history else est["theta"]
+        start = (latest, history, est.get("optimizer_state"), est.get("shooting"))
     result = identify_output_error(
         model,
         train_exps,
@@ -550,6 +557,7 @@ def _run_output_error(
         validation=val_exps or None,
         callback=_OELogger(logger),
         start=start,
+        initial_theta=None if est is None else est.get("initial_theta"),
     )
     extra = {
         "epochs": result.epochs,
