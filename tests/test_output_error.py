@@ -106,6 +106,19 @@ def test_lbfgs_polish_record(short: Experiment) -> None:
     assert res.history[-1].loss <= res.history[1].loss * 1.5  # polish never accepts a worse loss
 
 
+def test_lbfgs_alone_with_zero_epochs(short: Experiment) -> None:
+    """epochs = 0: no Adam step at all, only the L-BFGS polish (full length here)."""
+    start = _perturbed(_true_model())
+    res = identify_output_error(start, short, _quick(epochs=0, window=0, lbfgs_steps=3))
+    assert [r.index for r in res.history] == [1] and res.history[0].window == 0
+    data = _prepare([short], "experiments")
+    w = torch.tensor([1.0, 1.0], dtype=torch.float64)
+    with torch.no_grad():
+        before = _full_loss(start, data, start.get_theta(), 1, _scales(data), w, False)
+    assert res.history[0].loss < float(before)
+    assert not torch.equal(res.theta, start.get_theta())
+
+
 # -- mechanics --------------------------------------------------------------------------------
 def test_loss_decreases(short: Experiment) -> None:
     start = _perturbed(_true_model())

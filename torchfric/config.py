@@ -467,7 +467,7 @@ class EstimatorConfig:
         c.boolean("compile")
         c.boolean("p0_relative")
         c.boolean("rollback")
-        c.integer("epochs", ge=1)
+        c.integer("epochs", ge=0)
         c.number("lr", gt=0.0)
         c.number("lr_final", gt=0.0)
         c.integer("window", ge=0)

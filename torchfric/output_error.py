@@ -73,7 +73,9 @@ class OETuning:
     """Output-error training settings.
 
     Attributes:
-        epochs: Adam epochs (one batch of windows, or one full-length pass, per epoch).
+        epochs: Adam epochs (one batch of windows, or one full-length pass, per epoch); 0 with
+            `lbfgs_steps` > 0 runs L-BFGS alone (no Adam step, whose ≈ lr-sized move in every
+            coordinate can wreck a parameter whose own scale is below lr).
         lr: initial Adam learning rate on θ in estimation coordinates.
         lr_final: learning rate at the last epoch; cosine decay from `lr` (0 < lr_final <= lr).
         window: samples per truncated window (multiple shooting); 0 = full length.
@@ -115,8 +117,10 @@ class OETuning:
         """Validate against a model with k parameters; raises TorchfricError naming the key."""
         if not _is_int(k) or k < 1:
             raise _bad("k (number of parameters)", k, "an integer >= 1")
-        if not _is_int(self.epochs) or self.epochs < 1:
-            raise _bad("epochs", self.epochs, "an integer >= 1")
+        if not _is_int(self.epochs) or self.epochs < 0:
+            raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
+        if self.epochs == 0 and (not _is_int(self.lbfgs_steps) or self.lbfgs_steps < 1):
+            raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
         for key in ("lr", "lr_final"):
             v = getattr(self, key)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
@@ -172,6 +176,8 @@ class OETuning:
         """Window length of (1-based) `epoch`: the schedule's stage, else `window`."""
         if not self.schedule:
             return self.window
+        if self.epochs == 0:
+            return self.schedule[-1]
         stage = (epoch - 1) * len(self.schedule) // self.epochs
         return self.schedule[stage]
 
