@@ -117,9 +117,8 @@ class OETuning:
         """Validate against a model with k parameters; raises TorchfricError naming the key."""
         if not _is_int(k) or k < 1:
             raise _bad("k (number of parameters)", k, "an integer >= 1")
-        if not _is_int(self.epochs) or self.epochs < 0:
-            raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
-        if self.epochs == 0 and (not _is_int(self.lbfgs_steps) or self.lbfgs_steps < 1):
+        lbfgs_only = self.epochs == 0 and _is_int(self.lbfgs_steps) and self.lbfgs_steps > 0
+        if not _is_int(self.epochs) or (self.epochs < 1 and not lbfgs_only):
             raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
         for key in ("lr", "lr_final"):
             v = getattr(self, key)
@@ -340,7 +339,8 @@ def _draw(data: Sequence[_Data], window: int, batch: int, gen: torch.Generator) 
 
 
 def _tiles(data: Sequence[_Data], window: int) -> list[tuple]:
-    """Every experiment cut into non-overlapping windows of `window` samples (fixed loss)."""
+    """Every experiment cut into consecutive windows of `window` samples that share their end
+    points (starts 0, W−1, 2(W−1), …), in order: the fixed L-BFGS loss and the shooting tiles."""
     return [
         (i, s) for i, d in enumerate(data) for s in range(0, d.y.shape[0] - window + 1, window - 1)
     ]
@@ -358,11 +358,20 @@ def _window_loss(
     adjoint: bool,
 ) -> Tensor:
     """Loss over the windows `picks` = [(experiment, start)], simulated as one batch."""
-    u = torch.stack([data[i].u[s : s + window] for i, s in picks], dim=1)  # (W, B)
-    y = torch.stack([data[i].y[s : s + window] for i, s in picks], dim=1)  # (W, B, 2)
-    t = torch.arange(window, dtype=torch.float64) * data[picks[0][0]].dt
+    t, u, y = _stack_windows(data, picks, window)
     sim = _rollout(model, t, u, y[0], theta, steps, adjoint)
     return _loss(sim, y, scale, weights)
+
+
+def _stack_windows(
+    data: Sequence[_Data], picks: Sequence[tuple], window: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The windows `picks` = [(experiment, start)] as one batch: `t (W,)`, `u (W, B)`,
+    `y (W, B, 2)`."""
+    u = torch.stack([data[i].u[s : s + window] for i, s in picks], dim=1)
+    y = torch.stack([data[i].y[s : s + window] for i, s in picks], dim=1)
+    t = torch.arange(window, dtype=torch.float64) * data[picks[0][0]].dt
+    return t, u, y
 
 
 def _shooting_loss(
@@ -381,19 +390,17 @@ def _shooting_loss(
 ) -> Tensor:
     """Multiple-shooting loss of the tiles `picks` (indices into `tiles`) from learned starts
     ``y_start + scale·δ``: data term over all W samples plus the continuity penalty."""
-    u = torch.stack([data[tiles[j][0]].u[tiles[j][1] : tiles[j][1] + window] for j in picks], 1)
-    y = torch.stack([data[tiles[j][0]].y[tiles[j][1] : tiles[j][1] + window] for j in picks], 1)
-    idx = torch.tensor(list(picks))
-    x0 = y[0] + scale * delta[idx]
-    t = torch.arange(window, dtype=torch.float64) * data[tiles[picks[0]][0]].dt
+    t, u, y = _stack_windows(data, [tiles[j] for j in picks], window)
+    x0 = y[0] + scale * delta[torch.tensor(list(picks))]
     sim = _rollout(model, t, u, x0, theta, steps, adjoint)
     e = (sim - y) / scale
     out = (e * e * weights).sum(-1).mean()
-    # The next tile of the same experiment starts where this one ends (shared sample).
+    # `_tiles` lists each experiment's tiles in order, so the next tile of the same experiment
+    # is the next entry; it starts where this one ends (shared sample).
     nxt = [
         (b, j + 1)
         for b, j in enumerate(picks)
-        if j + 1 < len(tiles) and tiles[j + 1] == (tiles[j][0], tiles[j][1] + window - 1)
+        if j + 1 < len(tiles) and tiles[j + 1][0] == tiles[j][0]
     ]
     if continuity > 0 and nxt:
         b_idx = torch.tensor([b for b, _ in nxt])
