@@ -32,6 +32,7 @@ from torchfric.arm import ArmModel
 from torchfric.data import Experiment, make_experiment
 from torchfric.ekf import (
     EKFState,
+    FilterFailure,
     make_propagator,
     make_reference_flow,
     make_step,
@@ -848,6 +849,80 @@ def test_progress_stretches_do_not_change_the_arithmetic(short_exp: Experiment) 
     assert a.innovation_rms == pytest.approx(b.innovation_rms, rel=1e-10)
     assert a.nis == pytest.approx(b.nis, rel=1e-10)
     assert a.loglik == pytest.approx(b.loglik, rel=1e-10)
+
+
+# =============================================================================================
+# The compiled fast path: a scan over chunks of samples (one C++ loop per chunk)
+# =============================================================================================
+@pytest.fixture(scope="module")
+def compiled_step():  # type: ignore[no-untyped-def]
+    """`_small_start`'s step compiled with 64-sample chunks (one compile for the module)."""
+    model = _small_start()
+    return model, make_step(make_propagator(model, 1), compile=True, chunk=64)
+
+
+def _pass_inputs(model: ArmModel, exp: Experiment):  # type: ignore[no-untyped-def]
+    tuning = _tuning()
+    Q, _, H, R = tuning.matrices(model.num_parameters)
+    belief = _initial_belief(
+        model, exp, tuning, model.get_theta(), torch.eye(model.num_parameters) * 0.05
+    )
+    y = torch.stack([exp.q, exp.qdot], dim=-1)
+    return belief, exp.u, y, _t(exp.dt), Q, H, R
+
+
+def test_compiled_chunks_equal_the_eager_step(compiled_step, short_exp: Experiment) -> None:
+    model, fast = compiled_step
+    belief, u, y, dt, Q, H, R = _pass_inputs(model, short_exp)
+    eager = make_step(make_propagator(model, 1))
+    eager_state, eager_stats = run_pass(belief, u, y, dt, Q, H, R, eager)
+    # 249 steps = three full 64-sample chunks and a padded fourth.
+    state, stats = run_pass(belief, u, y, dt, Q, H, R, fast)
+    assert fast.chunk.chosen and fast.chunk.chosen[0] is not fast.chunk.eager, "did not compile"
+    torch.testing.assert_close(state.x, eager_state.x, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(state.P, eager_state.P, rtol=1e-9, atol=1e-15)
+    assert stats.samples == eager_stats.samples == short_exp.n
+    torch.testing.assert_close(stats.sum_e2, eager_stats.sum_e2, rtol=1e-9, atol=0)
+    assert stats.loglik == pytest.approx(eager_stats.loglik, rel=1e-10)
+    assert stats.sum_nis == pytest.approx(eager_stats.sum_nis, rel=1e-9)
+    # Continuing stretches, as identify_ekf's progress reports cut them, give the same pass.
+    s1, a = run_pass(belief, u[:100], y[:100], dt, Q, H, R, fast)
+    s2, b = run_pass(s1, u[99:], y[99:], dt, Q, H, R, fast, continuing=True, sample_offset=99)
+    torch.testing.assert_close(s2.x, state.x, rtol=1e-12, atol=1e-14)
+    assert a.samples + b.samples == short_exp.n
+    assert a.loglik + b.loglik == pytest.approx(stats.loglik, rel=1e-12)
+
+
+def test_compiled_chunk_names_the_failing_sample_and_keeps_the_belief_before_it(
+    compiled_step, short_exp: Experiment
+) -> None:
+    model, fast = compiled_step
+    belief, u, y, dt, Q, H, R = _pass_inputs(model, short_exp)
+    y = y.clone()
+    y[137, 0] = math.inf  # in the third chunk, not at its start
+    with pytest.raises(FilterFailure) as compiled_fail:
+        run_pass(belief, u, y, dt, Q, H, R, fast, sample_offset=1000)
+    with pytest.raises(FilterFailure) as eager_fail:
+        run_pass(
+            belief, u, y, dt, Q, H, R, make_step(make_propagator(model, 1)), sample_offset=1000
+        )
+    assert compiled_fail.value.sample == eager_fail.value.sample == 1137
+    assert compiled_fail.value.reason == eager_fail.value.reason
+    torch.testing.assert_close(
+        compiled_fail.value.state.x, eager_fail.value.state.x, rtol=1e-9, atol=1e-12
+    )
+
+
+def test_identify_ekf_compiled_equals_eager(short_exp: Experiment) -> None:
+    """The default fast path (`compile = true` in configs, 1000-sample chunks) through the
+    whole identification, with progress stretches that do not align with the chunks."""
+    model = _small_start()
+    eager = identify_ekf(model, short_exp, _tuning(passes=2))
+    fast = identify_ekf(model, short_exp, _tuning(passes=2, compile=True), progress_every=90)
+    torch.testing.assert_close(fast.theta, eager.theta, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(fast.P_theta, eager.P_theta, rtol=1e-9, atol=1e-15)
+    for a, b in zip(fast.history, eager.history, strict=True):
+        assert a.loglik == pytest.approx(b.loglik, rel=1e-10) and a.samples == b.samples
 
 
 # =============================================================================================

@@ -156,7 +156,9 @@ def test_a_diverging_member_is_frozen_and_the_rest_carry_on() -> None:
     exp = _data(true, n=300)
     theta0 = true.get_theta()
     bad = theta0.clone()
-    bad[true.theta_names.index("inertia")] += math.log(1e-4)  # a tiny inertia: the step blows up
+    # An inertia 1e6 times too small: RK4 at 1 ms is far outside its stability region, the
+    # very first prediction blows up (at 1e-4 the outcome hung on rounding: garbage either way).
+    bad[true.theta_names.index("inertia")] += math.log(1e-6)
     thetas = torch.stack([theta0, bad, theta0])
     one = torch.ones(3, dtype=torch.float64)
     tuning = EKFTuning(passes=2, tolerance=0.0, theta_bound=50.0)
@@ -171,11 +173,41 @@ def test_a_diverging_member_is_frozen_and_the_rest_carry_on() -> None:
     assert ens.summary()["status"][DIVERGED] == 1
 
 
+@pytest.mark.slow
+def test_compiled_chunked_ensemble_equals_the_eager_one() -> None:
+    """The compiled ensemble filters 1000-sample chunks in one scan; members, diverged ones
+    included (same sample named), come out as from the eager per-sample loop."""
+    true = _true()
+    exp = _data(true, n=300)
+    theta0 = true.get_theta()
+    bad = theta0.clone()
+    bad[true.theta_names.index("inertia")] += math.log(1e-6)
+    thetas = torch.stack([theta0, bad, theta0 * 1.1])
+    scales = torch.tensor([1.0, 1.0, 10.0], dtype=torch.float64)
+    runs = [
+        identify_ekf_ensemble(
+            true,
+            exp,
+            EKFTuning(passes=2, tolerance=0.0, theta_bound=50.0, compile=compile),
+            members=(thetas, scales, scales),
+        )
+        for compile in (False, True)
+    ]
+    eager, fast = runs
+    assert [m.status for m in fast.members] == [m.status for m in eager.members]
+    assert fast.members[1].reason == eager.members[1].reason
+    torch.testing.assert_close(fast.thetas, eager.thetas, rtol=1e-9, atol=1e-12)
+    for a, b in zip(fast.members, eager.members, strict=True):
+        assert a.loglik == pytest.approx(b.loglik, rel=1e-10)
+
+
 def test_all_members_diverging_is_one_clear_error() -> None:
     true = _true()
     exp = _data(true, n=200)
     bad = true.get_theta()
-    bad[true.theta_names.index("inertia")] += math.log(1e-4)
+    bad[true.theta_names.index("inertia")] += math.log(
+        1e-6
+    )  # as above: the first prediction blows up
     one = torch.ones(2, dtype=torch.float64)
     with pytest.raises(TorchfricError, match="every one of the 2 ensemble members diverged"):
         identify_ekf_ensemble(

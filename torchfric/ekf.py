@@ -45,6 +45,9 @@ __all__ = [
     "measurement_matrix",
     "make_propagator",
     "make_step",
+    "Step",
+    "CHUNK",
+    "pad_rows",
     "compile_with_fallback",
     "StepFn",
     "make_reference_flow",
@@ -77,6 +80,51 @@ class Innovation(NamedTuple):
     S: Tensor
     nis: Tensor
     loglik: Tensor
+
+
+def _mm(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` for the filter's small matrices, written as a broadcast product and a sum.
+
+    Same product as `torch.matmul`; the form lets Inductor fuse it into the step's one C++
+    kernel instead of calling BLAS per product (each call costs microseconds for 10 × 10)."""
+    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+
+
+def _cholesky(S: Tensor) -> list[list[Tensor]]:
+    """Lower Cholesky factor of the small SPD `S (m, m)` as an unrolled table ``L[i][j]``
+    (i ≥ j; 0-d tensors). `m` (1 or 2 here) is fixed when the step is traced, so the loops
+    vanish in a compiled graph. Not positive definite: a diagonal entry becomes NaN."""
+    m = S.shape[-1]
+    L: list[list[Tensor]] = [[S.new_zeros(())] * m for _ in range(m)]
+    for j in range(m):
+        s = S[j, j]
+        for p in range(j):
+            s = s - L[j][p] * L[j][p]
+        L[j][j] = torch.sqrt(s)
+        for i in range(j + 1, m):
+            s = S[i, j]
+            for p in range(j):
+                s = s - L[i][p] * L[j][p]
+            L[i][j] = s / L[j][j]
+    return L
+
+
+def _cholesky_solve(L: list[list[Tensor]], B: Tensor) -> Tensor:
+    """``S⁻¹ B`` for `B (m, r)` from `_cholesky`'s factor: forward then back substitution."""
+    m = len(L)
+    z: list[Tensor] = []
+    for i in range(m):
+        s = B[i]
+        for p in range(i):
+            s = s - L[i][p] * z[p]
+        z.append(s / L[i][i])
+    w: list[Tensor] = [B[0]] * m
+    for i in reversed(range(m)):
+        s = z[i]
+        for p in range(i + 1, m):
+            s = s - L[p][i] * w[p]
+        w[i] = s / L[i][i]
+    return torch.stack(w)
 
 
 def measurement_matrix(measure: str, n: int) -> Tensor:
@@ -143,10 +191,10 @@ def make_propagator(model: ArmModel, substeps: int) -> Propagator:
             Fx = F[:, :, :2]
             # F_i^θ E: the θ-columns placed into the augmented column space (2, n).
             Ft = torch.nn.functional.pad(F[:, :, 2:], (2, 0))
-            K1 = Fx[0] @ Phi + Ft[0]
-            K2 = Fx[1] @ (Phi + h * K1 / 3.0) + Ft[1]
-            K3 = Fx[2] @ (Phi + h * (K2 - K1 / 3.0)) + Ft[2]
-            K4 = Fx[3] @ (Phi + h * (K1 - K2 + K3)) + Ft[3]
+            K1 = _mm(Fx[0], Phi) + Ft[0]
+            K2 = _mm(Fx[1], Phi + h * K1 / 3.0) + Ft[1]
+            K3 = _mm(Fx[2], Phi + h * (K2 - K1 / 3.0)) + Ft[2]
+            K4 = _mm(Fx[3], Phi + h * (K1 - K2 + K3)) + Ft[3]
             Phi = Phi + (K1 + 3.0 * (K2 + K3) + K4) * (h / 8.0)
             x = x + (k1 + 3.0 * (k2 + k3) + k4) * (h / 8.0)
         return x, Phi
@@ -190,7 +238,7 @@ def predict(state: EKFState, u: Tensor, dt: Tensor, Q: Tensor, flow: Propagator)
     Phi = torch.cat([jac_x, eye[2:]], dim=0)
     x_prior = torch.cat([x_next, x[2:]])
     # P⁻ = Φ P Φᵀ + ½ (Φ Q Φᵀ + Q) dt
-    P_prior = Phi @ P @ Phi.T + 0.5 * (Phi @ Q @ Phi.T + Q) * dt
+    P_prior = _mm(_mm(Phi, P), Phi.T) + 0.5 * (_mm(_mm(Phi, Q), Phi.T) + Q) * dt
     return EKFState(x_prior, 0.5 * (P_prior + P_prior.T))
 
 
@@ -198,27 +246,25 @@ def update(state: EKFState, y: Tensor, H: Tensor, R: Tensor) -> tuple[EKFState, 
     """Measurement update with `y (m,)`, `H (m, n)`, `R (m, m)`; Joseph form."""
     x, P = state
     m = y.shape[0]
-    PHt = P @ H.T
+    PHt = _mm(P, H.T)
     # S = H P Hᵀ + R, innovation e = y − H x
-    S = H @ PHt + R
+    S = _mm(H, PHt) + R
     S = 0.5 * (S + S.T)
-    e = y - H @ x
-    L, info = torch.linalg.cholesky_ex(S)
+    e = y - (H * x).sum(-1)
+    L = _cholesky(S)
     # K = P Hᵀ S⁻¹ via the Cholesky factor (S symmetric: K = (S⁻¹ H P)ᵀ).
-    K = torch.cholesky_solve(PHt.T, L).T
-    x_post = x + K @ e
+    K = _cholesky_solve(L, PHt.T).T
+    x_post = x + (K * e).sum(-1)
     # Joseph form: P = (I − KH) P (I − KH)ᵀ + K R Kᵀ
-    IKH = torch.eye(x.shape[0], dtype=x.dtype) - K @ H
-    P_post = IKH @ P @ IKH.T + K @ R @ K.T
+    IKH = torch.eye(x.shape[0], dtype=x.dtype) - _mm(K, H)
+    P_post = _mm(_mm(IKH, P), IKH.T) + _mm(_mm(K, R), K.T)
     P_post = 0.5 * (P_post + P_post.T)
-    # NIS = eᵀ S⁻¹ e ; log det S = 2 Σ log diag L
-    w = torch.cholesky_solve(e.unsqueeze(-1), L).squeeze(-1)
-    nis = e @ w
-    logdet = 2.0 * torch.log(torch.diagonal(L)).sum()
+    # NIS = eᵀ S⁻¹ e ; log det S = 2 Σ log diag L. S not positive definite: L has NaN on its
+    # diagonal, so nis and loglik are NaN, which `healthy` reports.
+    w = _cholesky_solve(L, e.unsqueeze(-1)).squeeze(-1)
+    nis = (e * w).sum()
+    logdet = 2.0 * torch.log(torch.stack([L[i][i] for i in range(m)])).sum()
     loglik = -0.5 * (nis + logdet + m * _LOG_2PI)
-    # A failed Cholesky (S not PD) shows up as NaN downstream; make it explicit.
-    bad = info != 0
-    nis = torch.where(bad, torch.full_like(nis, float("nan")), nis)
     return EKFState(x_post, P_post), Innovation(e, S, nis, loglik)
 
 
@@ -238,14 +284,47 @@ def step(
 
 StepFn = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]
 
+# Samples per compiled call of `Step.chunk`: large enough that the per-call cost (guards,
+# argument handling) is spread thin, small enough that padding the last chunk of a pass costs
+# little. One size for every data set, so a process compiles the chunk once per model.
+CHUNK = 1000
 
-def make_step(flow: Propagator, *, compile: bool = False) -> StepFn:
-    """The per-sample step as a function of tensors only, optionally through `torch.compile`.
 
-    ``fn(x, P, u_prev, y, dt, Q, H, R, bound) -> (x⁺, P⁺, e, nis, loglik, ok)``; `ok` is the
-    `healthy` flag (one sync per sample instead of one per check). The model is captured in
-    `flow`. With `compile`, the first call compiles (Inductor, cached across runs); if that
-    fails for any reason the eager function is used from then on — same arithmetic.
+class Step:
+    """The per-sample EKF step and, when compiled, a scan of it over `size` samples at a time.
+
+    Calling a `Step` runs one sample: ``step(x, P, u_prev, y, dt, Q, H, R, bound) ->
+    (x⁺, P⁺, e, nis, loglik, ok)``; `ok` is the `healthy` flag. `eager` is the plain function.
+    `chunk`, when set (compiled steps), filters `size` samples in one call:
+    ``chunk(x, P, u (C,), y (C, m), valid (C,), dt, Q, H, R, bound) -> (x, P, e (C, m),
+    nis (C,), loglik (C,), ok (C,))``; samples with ``valid = False`` (padding) leave the belief
+    unchanged. `run_pass` uses `chunk` when it is there.
+    """
+
+    def __init__(
+        self,
+        eager: StepFn,
+        fast: StepFn | None = None,
+        chunk: Callable | None = None,
+        size: int = 0,
+    ) -> None:
+        self.eager = eager
+        self.fast = fast or eager
+        self.chunk = chunk
+        self.size = size
+
+    def __call__(self, *args: Tensor):  # type: ignore[no-untyped-def]
+        return self.fast(*args)
+
+
+def make_step(flow: Propagator, *, compile: bool = False, chunk: int = CHUNK) -> Step:
+    """The per-sample step as a function of tensors only, optionally compiled.
+
+    The model is captured in `flow`. With `compile`, the step is also compiled as a loop over
+    `chunk` samples (`torch._higher_order_ops.scan` under `torch.compile`, Inductor with its C++
+    wrapper, so the loop over samples runs in C++ and the whole step is one fused kernel). It
+    compiles on the first call, once per process and model; if compilation fails for any
+    reason the eager function is used from then on — same arithmetic.
     """
 
     def eager(
@@ -263,16 +342,65 @@ def make_step(flow: Propagator, *, compile: bool = False) -> StepFn:
         return state.x, state.P, inn.e, inn.nis, inn.loglik, healthy(state, inn, bound)
 
     if not compile:
-        return eager
-    return compile_with_fallback(eager)
+        return Step(eager)
+
+    def scan_chunk(
+        x: Tensor,
+        P: Tensor,
+        us: Tensor,
+        ys: Tensor,
+        valid: Tensor,
+        dt: Tensor,
+        Q: Tensor,
+        H: Tensor,
+        R: Tensor,
+        bound: Tensor,
+    ):  # type: ignore[no-untyped-def]
+        from torch._higher_order_ops import scan
+
+        def body(carry, inp):  # type: ignore[no-untyped-def]
+            x0, P0 = carry
+            u, y, v = inp
+            # The scan's body may not alias its inputs: the constants enter as fresh copies.
+            x1, P1, e, nis, ll, ok = eager(
+                x0, P0, u, y, dt.clone(), Q.clone(), H.clone(), R.clone(), bound.clone()
+            )
+            x1 = torch.where(v, x1, x0)
+            P1 = torch.where(v, P1, P0)
+            return (x1, P1), (e.clone(), nis.clone(), ll.clone(), ok | ~v)
+
+        (x, P), (e, nis, ll, ok) = scan(body, (x, P), (us, ys, valid))
+        return x, P, e, nis, ll, ok
+
+    chunk_fn = compile_with_fallback(_eager_chunk(eager), scan_chunk, options={"cpp_wrapper": True})
+    return Step(eager, compile_with_fallback(eager), chunk_fn, chunk)
 
 
-def compile_with_fallback(eager: StepFn) -> StepFn:
-    """`eager` through `torch.compile` (Inductor, full graph, static shapes), compiled on the
-    first call; if compilation fails for any reason the eager function is used from then on —
-    same arithmetic. The returned function carries `.eager` and `.chosen` (the function in use)."""
-    compiled = torch.compile(eager, dynamic=False, fullgraph=True)
-    chosen: list[StepFn] = []
+def _eager_chunk(eager: StepFn) -> Callable:
+    """`Step.chunk`'s contract as a Python loop over `eager` (the fallback of the scan)."""
+
+    def loop(x, P, us, ys, valid, dt, Q, H, R, bound):  # type: ignore[no-untyped-def]
+        outs = []
+        for u, y, v in zip(us, ys, valid, strict=True):
+            x1, P1, e, nis, ll, ok = eager(x, P, u, y, dt, Q, H, R, bound)
+            if bool(v):
+                x, P = x1, P1
+            outs.append((e, nis, ll, ok | ~v))
+        e, nis, ll, ok = (torch.stack(c) for c in zip(*outs, strict=True))
+        return x, P, e, nis, ll, ok
+
+    return loop
+
+
+def compile_with_fallback(
+    eager: Callable, traced: Callable | None = None, *, options: dict | None = None
+) -> Callable:
+    """`traced` (default: `eager`) through `torch.compile` (Inductor, full graph, static
+    shapes, `options`), compiled on the first call; if compilation fails for any reason `eager`
+    is used from then on — same arithmetic. The returned function carries `.eager` and
+    `.chosen` (the function in use)."""
+    compiled = torch.compile(traced or eager, dynamic=False, fullgraph=True, options=options)
+    chosen: list[Callable] = []
 
     def fast(*args: Tensor):  # type: ignore[no-untyped-def]
         if chosen:
@@ -362,7 +490,9 @@ def run_pass(
     Fresh (`continuing=False`): update with `y[0]`, then predict/update for samples 1…N−1.
     Continuing a previous stretch whose last sample was `y[0]`: only the predict/update steps.
     Returns the final belief and summed diagnostics. Raises `FilterFailure` naming the first bad
-    sample (offset by `sample_offset`).
+    sample (offset by `sample_offset`). A `Step` with a compiled `chunk` filters `Step.size`
+    samples per call and checks health once per chunk; on a failure the chunk is replayed with
+    the eager step to name the sample and keep the belief before it.
     """
     stats = PassStats(sum_e2=torch.zeros(y.shape[1], dtype=torch.float64))
     sum_e2 = torch.zeros(y.shape[1], dtype=torch.float64)
@@ -377,19 +507,70 @@ def run_pass(
         sum_e2, sum_nis, loglik = inn.e * inn.e, inn.nis, inn.loglik
         stats.samples = 1
     bound = torch.tensor(theta_bound, dtype=torch.float64)
-    for k in range(1, y.shape[0]):
-        x, P, e, nis, ll, ok = step_fn(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
-        # Checked every sample (one sync), so a failure names the exact sample.
-        if not bool(ok):
-            inn = Innovation(e, e.new_empty(0), nis, ll)
-            reason = _check(EKFState(x, P), inn, theta_bound) or "the filter became unhealthy"
-            raise FilterFailure(sample_offset + k, reason, state)
-        state = EKFState(x, P)
-        sum_e2 = sum_e2 + e * e
-        sum_nis = sum_nis + nis
-        loglik = loglik + ll
+    chunk = getattr(step_fn, "chunk", None)
+    if chunk is not None:
+        size = step_fn.size  # type: ignore[attr-defined]
+        for k0 in range(1, y.shape[0], size):
+            n = min(size, y.shape[0] - k0)
+            us, ys = pad_rows(u[k0 - 1 : k0 - 1 + n], size), pad_rows(y[k0 : k0 + n], size)
+            valid = torch.arange(size) < n
+            x, P, e, nis, ll, ok = chunk(state.x, state.P, us, ys, valid, dt, Q, H, R, bound)
+            if not bool(ok.all()):
+                _replay_failure(state, u, y, k0, int((~ok).nonzero()[0, 0]), dt, Q, H, R, bound,
+                                step_fn, theta_bound, sample_offset)  # fmt: skip
+            state = EKFState(x, P)
+            sum_e2 = sum_e2 + (e[:n] * e[:n]).sum(0)
+            sum_nis = sum_nis + nis[:n].sum()
+            loglik = loglik + ll[:n].sum()
+    else:
+        for k in range(1, y.shape[0]):
+            x, P, e, nis, ll, ok = step_fn(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
+            # Checked every sample (one sync), so a failure names the exact sample.
+            if not bool(ok):
+                inn = Innovation(e, e.new_empty(0), nis, ll)
+                reason = _check(EKFState(x, P), inn, theta_bound) or "the filter became unhealthy"
+                raise FilterFailure(sample_offset + k, reason, state)
+            state = EKFState(x, P)
+            sum_e2 = sum_e2 + e * e
+            sum_nis = sum_nis + nis
+            loglik = loglik + ll
     stats.samples += y.shape[0] - 1
     stats.sum_e2 = sum_e2
     stats.sum_nis = float(sum_nis)
     stats.loglik = float(loglik)
     return state, stats
+
+
+def pad_rows(a: Tensor, size: int) -> Tensor:
+    """`a` extended to `size` rows by repeating its last row (padding the scan never uses)."""
+    if a.shape[0] == size:
+        return a
+    return torch.cat([a, a[-1:].expand(size - a.shape[0], *a.shape[1:])])
+
+
+def _replay_failure(
+    state: EKFState,
+    u: Tensor,
+    y: Tensor,
+    k0: int,
+    bad: int,
+    dt: Tensor,
+    Q: Tensor,
+    H: Tensor,
+    R: Tensor,
+    bound: Tensor,
+    step_fn: StepFn,
+    theta_bound: float,
+    sample_offset: int,
+) -> None:
+    """A compiled chunk starting at sample `k0` from `state` went unhealthy at its index `bad`:
+    replay it with the eager step and raise `FilterFailure` for the first bad sample, with the
+    belief before it. The two paths agree to rounding, so the eager replay normally fails at
+    the same sample; if it fails earlier it names that one."""
+    eager = step_fn.eager  # type: ignore[attr-defined]
+    for k in range(k0, k0 + bad + 1):
+        x, P, e, nis, ll, ok = eager(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
+        reason = _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound)
+        if reason or k == k0 + bad:
+            raise FilterFailure(sample_offset + k, reason or "the filter became unhealthy", state)
+        state = EKFState(x, P)

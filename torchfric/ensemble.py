@@ -36,11 +36,14 @@ from torch.func import vmap
 from .arm import ArmModel
 from .data import Experiment
 from .ekf import (
+    CHUNK,
     EKFState,
+    Step,
     StepFn,
     compile_with_fallback,
     make_propagator,
     make_step,
+    pad_rows,
     update,
 )
 from .errors import TorchfricError
@@ -160,7 +163,9 @@ def make_batched_step(model: ArmModel, substeps: int, *, compile: bool = False) 
     return compile_with_fallback(batched) if compile else batched
 
 
-def make_masked_step(model: ArmModel, substeps: int, *, compile: bool = False) -> StepFn:
+def make_masked_step(
+    model: ArmModel, substeps: int, *, compile: bool = False, chunk: int = CHUNK
+) -> Step:
     """`make_batched_step` plus the ensemble's per-sample bookkeeping, as one function (one
     compiled graph, so the masking costs no extra per-sample dispatch):
 
@@ -168,6 +173,11 @@ def make_masked_step(model: ArmModel, substeps: int, *, compile: bool = False) -
     same seven state tensors, updated: members still `good` take the step and add its
     diagnostics; a member whose step is unhealthy keeps its last belief, records sample `j`
     (a 0-d tensor) in `fail_at` and drops out of `good`.
+
+    Compiled, it also filters `chunk` samples per call (`Step.chunk`, a scan as in
+    `torchfric.ekf.make_step`): ``chunk(x, P, good, fail_at, sum_e2, sum_nis, loglik, j (C,),
+    u (C,), y (C, m), valid (C,), dt, Q, H, R, bound)`` returns the seven state tensors after
+    the chunk's valid samples.
     """
     batched = make_batched_step(model, substeps)
 
@@ -201,7 +211,32 @@ def make_masked_step(model: ArmModel, substeps: int, *, compile: bool = False) -
             loglik + torch.where(good, ll, 0.0),
         )
 
-    return compile_with_fallback(masked) if compile else masked
+    if not compile:
+        return Step(masked)
+
+    def scan_chunk(*args: Tensor):  # type: ignore[no-untyped-def]
+        from torch._higher_order_ops import scan
+
+        carry0, (js, us, ys, valid), consts = args[:7], args[7:11], args[11:]
+
+        def body(carry, inp):  # type: ignore[no-untyped-def]
+            j, u, y, v = inp
+            # The scan's body may not alias its inputs: the constants enter as fresh copies.
+            new = masked(*carry, j, u, y, *(c.clone() for c in consts))
+            return tuple(torch.where(v, a, b) for a, b in zip(new, carry, strict=True)), v.clone()
+
+        carry, _ = scan(body, tuple(carry0), (js, us, ys, valid))
+        return carry
+
+    def eager_chunk(*args: Tensor):  # type: ignore[no-untyped-def]
+        carry, (js, us, ys, valid), consts = args[:7], args[7:11], args[11:]
+        for j, u, y, v in zip(js, us, ys, valid, strict=True):
+            if bool(v):
+                carry = masked(*carry, j, u, y, *consts)
+        return carry
+
+    chunk_fn = compile_with_fallback(eager_chunk, scan_chunk, options={"cpp_wrapper": True})
+    return Step(masked, compile_with_fallback(masked), chunk_fn, chunk)
 
 
 def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]
@@ -459,13 +494,23 @@ def identify_ekf_ensemble(
             sum_nis += torch.where(good, nis, 0.0)
             loglik += torch.where(good, ll, 0.0)
             index = torch.arange(exp.n)
-            for j in range(1, exp.n):
-                x, P, good, fail_at, sum_e2, sum_nis, loglik = step_fn(
-                    x, P, good, fail_at, sum_e2, sum_nis, loglik, index[j],
-                    u[j - 1], y[j], dt, Qk, H, Rk, bound,
-                )  # fmt: skip
-                if j % progress_every == 0:
-                    callback.on_progress(p, samples + j, total)
+            carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
+            if step_fn.chunk is not None:
+                size = step_fn.size
+                for j0 in range(1, exp.n, size):
+                    m = min(size, exp.n - j0)
+                    valid = torch.arange(size) < m
+                    carry = step_fn.chunk(
+                        *carry, pad_rows(index[j0 : j0 + m], size), pad_rows(u[j0 - 1 : j0 - 1 + m], size),
+                        pad_rows(y[j0 : j0 + m], size), valid, dt, Qk, H, Rk, bound,
+                    )  # fmt: skip
+                    callback.on_progress(p, samples + j0 + m, total)
+            else:
+                for j in range(1, exp.n):
+                    carry = step_fn(*carry, index[j], u[j - 1], y[j], dt, Qk, H, Rk, bound)
+                    if j % progress_every == 0:
+                        callback.on_progress(p, samples + j, total)
+            x, P, good, fail_at, sum_e2, sum_nis, loglik = carry
             for i in torch.nonzero(was_good & ~good).flatten().tolist():
                 fail_exp[i] = f"pass {p}, experiment {exp.name!r}, sample {int(fail_at[i])}"
             samples += exp.n
