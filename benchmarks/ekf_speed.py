@@ -1,6 +1,6 @@
 """Filter speed on this machine (issue 8). Prints tables; every number is measured in this run.
 
-    python benchmarks/ekf_speed.py            # all sections (about 10 min on 2 cores)
+    python benchmarks/ekf_speed.py            # all sections (about 15 min on 2 cores)
     python benchmarks/ekf_speed.py --quick    # fewer samples per measurement
     python benchmarks/ekf_speed.py --json speed.json
 
@@ -12,13 +12,21 @@ Sections:
    equations (RK4 3/8 map with its variational Φ, trapezoid Q_d, Joseph update) for tanh(3),
    checked against torchfric's step to 1e-9 before it is timed; and filterpy's EKF where installed
    (it is not a dependency; the row says so when absent).
-3. Batched ensembles (`torchfric.ensemble.make_batched_step`, compiled): filter-steps/s against K.
-4. Pass time against the number of samples (compiled tanh(3)) and the peak resident memory.
+3. Batched ensembles (`torchfric.ensemble.make_masked_step`, compiled chunks, as
+   `identify_ekf_ensemble` runs them): filter-steps/s against K.
+4. Pass time against the number of samples (compiled tanh(3), 1 k – 1 M) and the peak resident
+   memory.
+5. `identify_ekf` end to end: 10 passes of tanh(3) over the rig's 30 s identification data, as
+   `torchfric train` runs them (the compile is in pass 1).
+
+Compiled means: `torch.compile` of a `scan` over 1000-sample chunks (Inductor's C++ wrapper);
+the first call per process and model compiles it (the "first call" columns).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import resource
@@ -35,7 +43,8 @@ from torchfric.ekf import (
     measurement_matrix,
     run_pass,
 )
-from torchfric.ensemble import make_batched_step, random_thetas
+from torchfric.ensemble import make_masked_step, random_thetas
+from torchfric.identify import EKFTuning, identify_ekf
 from torchfric.prefit import prefit
 from torchfric.rig import rig_experiment
 
@@ -170,8 +179,9 @@ def filterpy_row(n: int) -> str:
     return "filterpy installed but its EKF needs a hand-written Jacobian callback; not measured"
 
 
-def batched(model: ArmModel, exp, K: int, n: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """(filter-steps/s, first-call seconds) of the compiled batched step over n samples."""
+def batched(model: ArmModel, exp, K: int, n: int, mm=None) -> tuple[float, float]:  # type: ignore[no-untyped-def]
+    """(filter-steps/s, first-call seconds) of the ensemble's compiled chunked step (the code
+    `identify_ekf_ensemble` runs: vmap of the step, masking, one scan per 1000 samples)."""
     k = model.num_parameters
     Q, H, R = tuning(k)
     g = torch.Generator().manual_seed(0)
@@ -179,19 +189,40 @@ def batched(model: ArmModel, exp, K: int, n: int) -> tuple[float, float]:  # typ
     st = initial(model, exp)
     x = torch.cat([st.x[:2].expand(K, 2), th], 1)
     P = st.P.expand(K, -1, -1).clone()
-    Qk, Rk = Q.expand(K, -1, -1), R.expand(K, -1, -1)
-    step = make_batched_step(model, 1, compile=True)
+    Qk, Rk = Q.expand(K, -1, -1).clone(), R.expand(K, -1, -1).clone()
+    step = make_masked_step(model, 1, compile=True, mm=mm)
+    f64 = torch.float64
+    carry = (x, P, torch.ones(K, dtype=torch.bool), torch.full((K,), -1),
+             torch.zeros(K, 2, dtype=f64), torch.zeros(K, dtype=f64), torch.zeros(K, dtype=f64))  # fmt: skip
     u, y = exp.u.to(F64), torch.stack([exp.q, exp.qdot], -1).to(F64)
     dt, bound = torch.tensor(exp.dt, dtype=F64), torch.tensor(1e6, dtype=F64)
+    C, index = step.size, torch.arange(exp.n)
+
+    def chunk(carry, j0):  # type: ignore[no-untyped-def]
+        sl = slice(j0, j0 + C)
+        return step.chunk(*carry, index[sl], u[j0 - 1 : j0 - 1 + C], y[sl],
+                          torch.ones(C, dtype=torch.bool), dt, Qk, H, Rk, bound)  # fmt: skip
+
     t0 = time.perf_counter()
-    step(x, P, u[0], y[1], dt, Qk, H, Rk, bound)
+    chunk(carry, 1)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
-    for j in range(1, n):
-        x, P, e, nis, ll, ok = step(x, P, u[j - 1], y[j], dt, Qk, H, Rk, bound)
-        good = ok.all()  # the same one sync per sample as the single filter's health check
-    bool(good)
-    return K * (n - 1) / (time.perf_counter() - t0), first
+    for j0 in range(1, 1 + n, C):
+        carry = chunk(carry, j0)
+    bool(carry[2].all())
+    return K * len(range(1, 1 + n, C)) * C / (time.perf_counter() - t0), first
+
+
+def identification(model: ArmModel, exp, passes: int) -> tuple[float, float, float]:  # type: ignore[no-untyped-def]
+    """`identify_ekf` as `torchfric train` runs it (compiled, `passes` full passes, no early
+    stop): (total s, pass 1 s including the one-time compile, median s of the other passes)."""
+    t0 = time.perf_counter()
+    res = identify_ekf(
+        model, exp, EKFTuning(passes=passes, tolerance=0.0, rollback=False, compile=True)
+    )
+    total = time.perf_counter() - t0
+    rest = sorted(r.seconds for r in res.history[1:])
+    return total, res.history[0].seconds, rest[len(rest) // 2]
 
 
 def main() -> None:
@@ -202,7 +233,7 @@ def main() -> None:
     torch.set_num_threads(1)
     exp = rig_data()
     out: dict = {"single": [], "baselines": {}, "batched": [], "scaling": []}
-    n_c, n_e = (1000, 200) if args.quick else (4000, 600)
+    n_c, n_e = (3000, 200) if args.quick else (20000, 600)
 
     print("## 1. One filter, real code path (run_pass), float64, rig data")
     print("| model | k | eager steps/s | compiled steps/s | first call (compile) s |")
@@ -233,11 +264,11 @@ def main() -> None:
           f"| {np_rate:,.0f} | {np_rate / ours:.2f} |")  # fmt: skip
     print(f"| filterpy | – | {out['baselines']['filterpy']} |", flush=True)
 
-    print("\n## 3. Batched ensembles, tanh(3), compiled vmap of the same step")
+    print("\n## 3. Batched ensembles, tanh(3), compiled chunks of the vmapped, masked step")
     print("| K filters | filter-steps/s | per step of the batch, µs | first call (compile) s |")
     print("|---|---|---|---|")
     for K in [1, 16, 64, 256, 1024]:
-        n = max(100, (n_c // 4) if K <= 64 else (n_c // 16))
+        n = 1000 if args.quick or K >= 256 else 4000
         rate, first = batched(tanh3, exp, K, n)
         out["batched"].append({"K": K, "filter_steps_per_s": rate, "compile_s": first})
         print(f"| {K} | {rate:,.0f} | {1e6 * K / rate:,.0f} | {first:.1f} |", flush=True)
@@ -245,15 +276,24 @@ def main() -> None:
     print("\n## 4. Pass time against samples (compiled tanh(3)); peak memory")
     print("| samples | seconds | steps/s |")
     print("|---|---|---|")
-    long = torch.cat([exp.u] * 4), torch.cat([exp.q] * 4), torch.cat([exp.qdot] * 4)
+    reps = 34  # 34 × 30 s at 1 kHz > 1 M samples
+    long = torch.cat([exp.u] * reps), torch.cat([exp.q] * reps), torch.cat([exp.qdot] * reps)
     t_long = torch.arange(long[0].numel(), dtype=F64) * exp.dt
     big = make_experiment(t_long, long[0], long[1], qdot=long[2])
-    for n in [1000, 10000] if args.quick else [1000, 10000, 100000]:
+    for n in [1000, 10000] if args.quick else [1000, 10000, 100000, 1000000]:
         rate, _ = time_pass(tanh3, big, n, compile=True)
         out["scaling"].append({"samples": n, "seconds": n / rate, "steps_per_s": rate})
         print(f"| {n:,} | {n / rate:.2f} | {rate:,.0f} |", flush=True)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out["peak_rss_mb"] = rss
+
+    passes = 3 if args.quick else 10
+    print(f"\n## 5. identify_ekf, tanh(3), {passes} passes over the rig's 30 s identification data")
+    print("| total s | pass 1 s (with the one-time compile) | later passes, median s |")
+    print("|---|---|---|")
+    total, first, later = identification(copy.deepcopy(tanh3), exp, passes)
+    out["identify"] = {"passes": passes, "total_s": total, "pass1_s": first, "later_s": later}
+    print(f"| {total:.1f} | {first:.1f} | {later:.2f} |", flush=True)
     print(f"\npeak resident memory of this whole benchmark process: {rss:.0f} MB "
           "(run_pass keeps sums, not per-sample history)")  # fmt: skip
     if args.json:
