@@ -66,18 +66,22 @@ def score_simulation(
     method: str = "rk4",
     substeps: int | str = "auto",
     skip: int = 0,
+    engine: str = "odeint",
 ) -> SimulationScore:
     """Simulate `experiment` open loop from ``[q_0, q̇_0]`` and score q and q̇.
 
     q̇ is scored against the experiment's `qdot` (reconstructed or measured); `skip` leading
-    samples are left out of the scores (a benchmark's state-initialisation window).
+    samples are left out of the scores (a benchmark's state-initialisation window). `engine` as
+    in `simulate`.
     """
     if experiment.qdot is None:
         raise TorchfricError(
             f"experiment {experiment.name!r} has no velocity to score against; reconstruct it first"
         )
     x0 = torch.stack([experiment.q[0], experiment.qdot[0]])
-    states = simulate(model, experiment.t, experiment.u, x0, method=method, substeps=substeps)
+    states = simulate(
+        model, experiment.t, experiment.u, x0, method=method, substeps=substeps, engine=engine
+    )
     sl = slice(skip, None)
     q, v = experiment.q[sl], experiment.qdot[sl]
     return SimulationScore(
