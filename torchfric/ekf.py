@@ -249,14 +249,19 @@ def predict(
     Returns the prior ``(x⁻, P⁻)``.
     """
     x, P = state
-    n = x.shape[0]
-    # Φ_x = ∂x_{k+1}/∂x*_k (2, n) of the RK4 map; θ rows are the identity (θ̇ = 0).
+    # Φ_x = ∂x_{k+1}/∂x*_k (2, n) of the RK4 map; θ rows are the identity (θ̇ = 0), so
+    # Φ = [Φ_x; 0 I] and Φ M Φᵀ = [[Φ_x M Φ_xᵀ, (Φ_x M)_θ], [(Φ_x M)_θᵀ, M_θθ]]: the same
+    # product as the full one, at a fifth of the arithmetic for tanh(3).
     x_next, jac_x = flow(x, u, dt)
-    eye = torch.eye(n, dtype=x.dtype)
-    Phi = torch.cat([jac_x, eye[2:]], dim=0)
     x_prior = torch.cat([x_next, x[2:]])
+
+    def sandwich(M: Tensor) -> Tensor:
+        AM = mm(jac_x, M)  # (2, n)
+        top = torch.cat([mm(AM, jac_x.T), AM[:, 2:]], dim=1)
+        return torch.cat([top, torch.cat([AM[:, 2:].T, M[2:, 2:]], dim=1)], dim=0)
+
     # P⁻ = Φ P Φᵀ + ½ (Φ Q Φᵀ + Q) dt
-    P_prior = mm(mm(Phi, P), Phi.T) + 0.5 * (mm(mm(Phi, Q), Phi.T) + Q) * dt
+    P_prior = sandwich(P) + 0.5 * (sandwich(Q) + Q) * dt
     return EKFState(x_prior, 0.5 * (P_prior + P_prior.T))
 
 
@@ -275,9 +280,10 @@ def update(
     # K = P Hᵀ S⁻¹ via the Cholesky factor (S symmetric: K = (S⁻¹ H P)ᵀ).
     K = _cholesky_solve(L, PHt.T).T
     x_post = x + (K * e).sum(-1)
-    # Joseph form: P = (I − KH) P (I − KH)ᵀ + K R Kᵀ
-    IKH = torch.eye(x.shape[0], dtype=x.dtype) - mm(K, H)
-    P_post = mm(mm(IKH, P), IKH.T) + mm(mm(K, R), K.T)
+    # Joseph form: P = (I − KH) P (I − KH)ᵀ + K R Kᵀ, each factor applied as a rank-m
+    # correction: M = (I − KH) P = P − K (H P), then M (I − KH)ᵀ = M − (M Hᵀ) Kᵀ.
+    M = P - mm(K, mm(H, P))
+    P_post = M - mm(mm(M, H.T), K.T) + mm(mm(K, R), K.T)
     P_post = 0.5 * (P_post + P_post.T)
     # NIS = eᵀ S⁻¹ e ; log det S = 2 Σ log diag L. S not positive definite: L has NaN on its
     # diagonal, so nis and loglik are NaN, which `healthy` reports.
