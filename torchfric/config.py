@@ -524,6 +524,7 @@ class EstimatorConfig:
             adjoint=self.adjoint,
             learn_states=self.learn_states,
             continuity=self.continuity,
+            compile=self.compile,
         )
 
     def ensemble_spec(self, seed: int = 0) -> EnsembleSpec:

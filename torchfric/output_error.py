@@ -94,6 +94,8 @@ class OETuning:
         learn_states: multiple shooting with learned window initial states (module docstring);
             needs a fixed `window` >= 2 and no `schedule`.
         continuity: weight of the continuity penalty between consecutive tiles (learn_states).
+        compile: score validation through `simulate(..., engine="compiled")` (the same rk4
+            steps, about 15× faster than odeint on 20 k samples); training is unaffected.
     """
 
     epochs: int = 200
@@ -112,6 +114,7 @@ class OETuning:
     adjoint: bool = False
     learn_states: bool = False
     continuity: float = 1.0
+    compile: bool = False
 
     def check(self, k: int) -> None:
         """Validate against a model with k parameters; raises TorchfricError naming the key."""
@@ -546,7 +549,8 @@ def identify_output_error(
         steps = _substeps(model, th, vals[0].dt, tuning.substeps)
         out = {}
         for name, e in zip(names, vals, strict=True):
-            s = score_simulation(work, e, method=_METHOD, substeps=steps)
+            engine = "compiled" if tuning.compile else "odeint"
+            s = score_simulation(work, e, method=_METHOD, substeps=steps, engine=engine)
             out[name] = {"fit_q": s.fit_q, "fit_qdot": s.fit_qdot}
         return out
 
