@@ -167,9 +167,10 @@ MatMul = Callable[[Tensor, Tensor], Tensor]
 
 def matmul_for(n: int) -> MatMul:
     """The matrix product for an `n`-state filter: `fused_matmul` up to n = 20, where it lets
-    the compiled step be one kernel (tanh(3), n = 10: 20 k steps/s vs 14 k with BLAS calls),
-    `torch.matmul` above (Inductor's fused products grow like n⁴ here: tanh(30), n = 64:
-    430 steps/s fused vs 4 k with BLAS; `benchmarks/ekf_speed.py`)."""
+    the compiled step be one kernel (tanh(3), n = 10: 22 k steps/s vs 14 k with BLAS calls),
+    `torch.matmul` above, where Inductor's plain loops lose to BLAS (tanh(10), n = 24: 8.6 k
+    fused vs 17 k; tanh(30), n = 64: 430 vs 4 k; measured before predict/update used their
+    structure, with `benchmarks/ekf_speed.py`'s single-filter pass)."""
     return fused_matmul if n <= 20 else torch.matmul
 
 
@@ -251,7 +252,7 @@ def predict(
     x, P = state
     # Φ_x = ∂x_{k+1}/∂x*_k (2, n) of the RK4 map; θ rows are the identity (θ̇ = 0), so
     # Φ = [Φ_x; 0 I] and Φ M Φᵀ = [[Φ_x M Φ_xᵀ, (Φ_x M)_θ], [(Φ_x M)_θᵀ, M_θθ]]: the same
-    # product as the full one, at a fifth of the arithmetic for tanh(3).
+    # product as the full one, with about 4n² instead of 2n³ multiplications.
     x_next, jac_x = flow(x, u, dt)
     x_prior = torch.cat([x_next, x[2:]])
 
