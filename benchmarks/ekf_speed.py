@@ -201,8 +201,8 @@ def batched(model: ArmModel, exp, K: int, n: int, mm=None) -> tuple[float, float
 
     def chunk(carry, j0):  # type: ignore[no-untyped-def]
         sl = slice(j0, j0 + C)
-        return step.chunk(*carry, index[sl], u[j0 - 1 : j0 - 1 + C], y[sl],
-                          torch.ones(C, dtype=torch.bool), dt, Qk, H, Rk, bound)  # fmt: skip
+        xs = (index[sl], u[j0 - 1 : j0 - 1 + C], y[sl])
+        return step.chunk(carry, xs, torch.ones(C, dtype=torch.bool), (dt, Qk, H, Rk, bound))[0]
 
     t0 = time.perf_counter()
     chunk(carry, 1)

@@ -37,6 +37,7 @@ from torch.func import grad, jacrev
 
 from .arm import ArmModel
 from .errors import TorchfricError
+from .simulate import rk4_step
 
 __all__ = [
     "EKFState",
@@ -50,6 +51,7 @@ __all__ = [
     "Step",
     "CHUNK",
     "pad_rows",
+    "make_chunk",
     "compile_with_fallback",
     "StepFn",
     "MatMul",
@@ -227,11 +229,7 @@ def make_reference_flow(model: ArmModel, substeps: int) -> Propagator:
         fric, arm = model.split(theta)
         h = dt / substeps
         for _ in range(substeps):
-            k1 = model.dynamics(x, u, fric, arm)
-            k2 = model.dynamics(x + h * k1 / 3.0, u, fric, arm)
-            k3 = model.dynamics(x + h * (k2 - k1 / 3.0), u, fric, arm)
-            k4 = model.dynamics(x + h * (k1 - k2 + k3), u, fric, arm)
-            x = x + (k1 + 3.0 * (k2 + k3) + k4) * (h / 8.0)
+            x = rk4_step(model, x, u, h, fric, arm)
         return x, x
 
     def propagate(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
@@ -323,10 +321,10 @@ class Step:
 
     Calling a `Step` runs one sample: ``step(x, P, u_prev, y, dt, Q, H, R, bound) ->
     (x⁺, P⁺, e, nis, loglik, ok)``; `ok` is the `healthy` flag. `eager` is the plain function.
-    `chunk`, when set (compiled steps), filters `size` samples in one call:
-    ``chunk(x, P, u (C,), y (C, m), valid (C,), dt, Q, H, R, bound) -> (x, P, e (C, m),
-    nis (C,), loglik (C,), ok (C,))``; samples with ``valid = False`` (padding) leave the belief
-    unchanged. `run_pass` uses `chunk` when it is there.
+    `chunk`, when set (compiled steps), filters `size` samples in one call (`make_chunk`):
+    ``chunk((x, P), (u (C,), y (C, m)), valid (C,), (dt, Q, H, R, bound)) -> ((x, P),
+    (e (C, m), nis (C,), loglik (C,), ok (C,)))``; padding samples (``valid = False``) leave the
+    belief unchanged. `run_pass` uses `chunk` when it is there.
     """
 
     def __init__(
@@ -376,57 +374,54 @@ def make_step(
     if not compile:
         return Step(eager)
 
-    def scan_chunk(
-        x: Tensor,
-        P: Tensor,
-        us: Tensor,
-        ys: Tensor,
-        valid: Tensor,
-        dt: Tensor,
-        Q: Tensor,
-        H: Tensor,
-        R: Tensor,
-        bound: Tensor,
-    ):  # type: ignore[no-untyped-def]
-        from torch._higher_order_ops import scan
-
-        def body(carry, inp):  # type: ignore[no-untyped-def]
-            x0, P0 = carry
-            u, y, v = inp
-            # The scan's body may not alias its inputs: the constants enter as fresh copies.
-            x1, P1, e, nis, ll, ok = eager(
-                x0, P0, u, y, dt.clone(), Q.clone(), H.clone(), R.clone(), bound.clone()
-            )
-            x1 = torch.where(v, x1, x0)
-            P1 = torch.where(v, P1, P0)
-            return (x1, P1), (e.clone(), nis.clone(), ll.clone(), ok | ~v)
-
-        (x, P), (e, nis, ll, ok) = scan(body, (x, P), (us, ys, valid))
-        return x, P, e, nis, ll, ok
+    def one(x, P, u, y, *consts):  # type: ignore[no-untyped-def]
+        x1, P1, *diagnostics = eager(x, P, u, y, *consts)
+        return (x1, P1), tuple(diagnostics)
 
     options: dict = {"cpp_wrapper": True}
     if mm is fused_matmul:
         # The fused step's loops run over 2–20 elements, where SIMD tails cost more than they
         # save: scalar code measured 36 k against 31 k steps/s for tanh(3).
         options["cpp.simdlen"] = 1
-    chunk_fn = compile_with_fallback(_eager_chunk(eager), scan_chunk, options=options)
-    return Step(eager, compile_with_fallback(eager), chunk_fn, chunk)
+    return Step(eager, compile_with_fallback(eager), make_chunk(one, options=options), chunk)
 
 
-def _eager_chunk(eager: StepFn) -> Callable:
-    """`Step.chunk`'s contract as a Python loop over `eager` (the fallback of the scan)."""
+def make_chunk(fn: Callable, *, options: dict | None = None) -> Callable:
+    """`fn` applied along chunks of samples as one compiled call, with an eager fallback.
 
-    def loop(x, P, us, ys, valid, dt, Q, H, R, bound):  # type: ignore[no-untyped-def]
-        outs = []
-        for u, y, v in zip(us, ys, valid, strict=True):
-            x1, P1, e, nis, ll, ok = eager(x, P, u, y, dt, Q, H, R, bound)
+    ``fn(*carry, *x, *consts) -> (carry', outs)`` is one sample: `carry` a tuple of tensors
+    threaded from sample to sample, `x` the sample's slices, `consts` the same every sample,
+    `outs` a tuple of per-sample tensors. The returned ``chunk(carry, xs, valid, consts) ->
+    (carry, outs)`` takes `xs` with a leading sample axis C and returns each of `outs` stacked
+    along C; a sample with ``valid = False`` (padding) leaves the carry as it was (its `outs`
+    are computed but meaningless). Compiled as `torch._higher_order_ops.scan` under
+    `torch.compile` with Inductor `options`, through `compile_with_fallback`.
+    """
+
+    def traced(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
+        from torch._higher_order_ops import scan
+
+        def body(c, inp):  # type: ignore[no-untyped-def]
+            *x, v = inp
+            # The scan's body may not alias its inputs: the constants enter as fresh copies.
+            new, outs = fn(*c, *x, *(k.clone() for k in consts))
+            new = tuple(torch.where(v, a, b) for a, b in zip(new, c, strict=True))
+            # `v` is always an output: scan needs one even when `fn` has none.
+            return new, (*(o.clone() for o in outs), v.clone())
+
+        c, outs = scan(body, tuple(carry), (*xs, valid))
+        return c, tuple(outs[:-1])
+
+    def loop(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
+        carry, collected = tuple(carry), []
+        for *x, v in zip(*xs, valid, strict=True):
+            new, outs = fn(*carry, *x, *consts)
             if bool(v):
-                x, P = x1, P1
-            outs.append((e, nis, ll, ok | ~v))
-        e, nis, ll, ok = (torch.stack(c) for c in zip(*outs, strict=True))
-        return x, P, e, nis, ll, ok
+                carry = tuple(new)
+            collected.append(outs)
+        return carry, tuple(torch.stack(o) for o in zip(*collected, strict=True))
 
-    return loop
+    return compile_with_fallback(loop, traced, options=options)
 
 
 def compile_with_fallback(
@@ -551,7 +546,10 @@ def run_pass(
             n = min(size, y.shape[0] - k0)
             us, ys = pad_rows(u[k0 - 1 : k0 - 1 + n], size), pad_rows(y[k0 : k0 + n], size)
             valid = torch.arange(size) < n
-            x, P, e, nis, ll, ok = chunk(state.x, state.P, us, ys, valid, dt, Q, H, R, bound)
+            (x, P), (e, nis, ll, ok) = chunk(
+                (state.x, state.P), (us, ys), valid, (dt, Q, H, R, bound)
+            )
+            ok = ok[:n]
             if not bool(ok.all()):
                 _replay_failure(state, u, y, k0, int((~ok).nonzero()[0, 0]), dt, Q, H, R, bound,
                                 step_fn, theta_bound, sample_offset)  # fmt: skip

@@ -42,6 +42,7 @@ from .ekf import (
     Step,
     StepFn,
     compile_with_fallback,
+    make_chunk,
     make_propagator,
     make_step,
     pad_rows,
@@ -185,10 +186,10 @@ def make_masked_step(
     diagnostics; a member whose step is unhealthy keeps its last belief, records sample `j`
     (a 0-d tensor) in `fail_at` and drops out of `good`.
 
-    Compiled, it also filters `chunk` samples per call (`Step.chunk`, a scan as in
-    `torchfric.ekf.make_step`): ``chunk(x, P, good, fail_at, sum_e2, sum_nis, loglik, j (C,),
-    u (C,), y (C, m), valid (C,), dt, Q, H, R, bound)`` returns the seven state tensors after
-    the chunk's valid samples.
+    Compiled, it also filters `chunk` samples per call (`Step.chunk`, `torchfric.ekf.make_chunk`):
+    ``chunk((x, P, good, fail_at, sum_e2, sum_nis, loglik), (j (C,), u (C,), y (C, m)),
+    valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
+    samples (and no per-sample outputs).
     """
     batched = make_batched_step(model, substeps, mm=mm)
 
@@ -225,29 +226,12 @@ def make_masked_step(
     if not compile:
         return Step(masked)
 
-    def scan_chunk(*args: Tensor):  # type: ignore[no-untyped-def]
-        from torch._higher_order_ops import scan
+    def one(*args: Tensor):  # type: ignore[no-untyped-def]
+        return masked(*args), ()
 
-        carry0, (js, us, ys, valid), consts = args[:7], args[7:11], args[11:]
-
-        def body(carry, inp):  # type: ignore[no-untyped-def]
-            j, u, y, v = inp
-            # The scan's body may not alias its inputs: the constants enter as fresh copies.
-            new = masked(*carry, j, u, y, *(c.clone() for c in consts))
-            return tuple(torch.where(v, a, b) for a, b in zip(new, carry, strict=True)), v.clone()
-
-        carry, _ = scan(body, tuple(carry0), (js, us, ys, valid))
-        return carry
-
-    def eager_chunk(*args: Tensor):  # type: ignore[no-untyped-def]
-        carry, (js, us, ys, valid), consts = args[:7], args[7:11], args[11:]
-        for j, u, y, v in zip(js, us, ys, valid, strict=True):
-            if bool(v):
-                carry = masked(*carry, j, u, y, *consts)
-        return carry
-
-    chunk_fn = compile_with_fallback(eager_chunk, scan_chunk, options={"cpp_wrapper": True})
-    return Step(masked, compile_with_fallback(masked), chunk_fn, chunk)
+    return Step(
+        masked, compile_with_fallback(masked), make_chunk(one, options={"cpp_wrapper": True}), chunk
+    )
 
 
 def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]
@@ -511,10 +495,9 @@ def identify_ekf_ensemble(
                 for j0 in range(1, exp.n, size):
                     m = min(size, exp.n - j0)
                     valid = torch.arange(size) < m
-                    carry = step_fn.chunk(
-                        *carry, pad_rows(index[j0 : j0 + m], size), pad_rows(u[j0 - 1 : j0 - 1 + m], size),
-                        pad_rows(y[j0 : j0 + m], size), valid, dt, Qk, H, Rk, bound,
-                    )  # fmt: skip
+                    xs = (pad_rows(index[j0 : j0 + m], size), pad_rows(u[j0 - 1 : j0 - 1 + m], size),
+                          pad_rows(y[j0 : j0 + m], size))  # fmt: skip
+                    carry, _ = step_fn.chunk(carry, xs, valid, (dt, Qk, H, Rk, bound))
                     callback.on_progress(p, samples + j0 + m, total)
             else:
                 for j in range(1, exp.n):

@@ -22,7 +22,7 @@ from torchdiffeq import odeint
 from .arm import ArmModel
 from .errors import TorchfricError
 
-__all__ = ["simulate", "auto_substeps", "sample_grid", "SOLVERS", "ENGINES"]
+__all__ = ["simulate", "rk4_step", "auto_substeps", "sample_grid", "SOLVERS", "ENGINES"]
 
 # "odeint": torchdiffeq (differentiable, the reference). "compiled": the same RK4 (3/8 rule)
 # steps on the same grid as a `torch.compile`d scan over 1000 solver steps per call, for
@@ -159,47 +159,36 @@ def simulate(
     return odeint(field, x0, t, method=method, options=options)
 
 
+def rk4_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
+    """One classical RK4 (3/8 rule) step of length `h` with held input `u`, as torchdiffeq's
+    ``rk4`` takes it; `fric`, `arm` from `model.split(θ)`."""
+    k1 = model.dynamics(x, u, fric, arm)
+    k2 = model.dynamics(x + h * k1 / 3.0, u, fric, arm)
+    k3 = model.dynamics(x + h * (k2 - k1 / 3.0), u, fric, arm)
+    k4 = model.dynamics(x + h * (k1 - k2 + k3), u, fric, arm)
+    return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
+
+
 _RK4_CHUNKS: dict[str, object] = {}
 
 
 def _rk4_chunk(model: ArmModel):  # type: ignore[no-untyped-def]
-    """`chunk(x, u (C, ...), h (C,), θ) -> (x, states (C, ...))`: C RK4 (3/8 rule) steps, each
-    with its own held input and step length, as torchdiffeq's ``rk4`` takes them; a step with
-    h = 0 (padding) leaves x as it is. Compiled once per process and model *structure*: θ is
-    an input, so the fitted models of successive passes share one compiled chunk."""
+    """`torchfric.ekf.make_chunk` of `rk4_step`: ``chunk((x,), (u (C, ...), h (C,)), valid,
+    (θ,)) -> ((x,), (states (C, ...),))``, each step with its own held input and length.
+    Compiled once per process and model *structure*: θ is an input, so the fitted models of
+    successive passes share one compiled chunk."""
     spec = model.spec()
     spec["friction"] = {k: v for k, v in spec["friction"].items() if k != "values"}
     spec.pop("arm", None)  # θ's physical values; everything else fixes the structure
     key = json.dumps(spec, sort_keys=True, default=str)
     if key not in _RK4_CHUNKS:
-        from torch._higher_order_ops import scan
+        from .ekf import make_chunk
 
-        from .ekf import compile_with_fallback
+        def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
+            x1 = rk4_step(model, x, u, h, *model.split(theta))
+            return (x1,), (x1,)
 
-        def rk4(x: Tensor, u: Tensor, h: Tensor, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
-            k1 = model.dynamics(x, u, fric, arm)
-            k2 = model.dynamics(x + h * k1 / 3.0, u, fric, arm)
-            k3 = model.dynamics(x + h * (k2 - k1 / 3.0), u, fric, arm)
-            k4 = model.dynamics(x + h * (k1 - k2 + k3), u, fric, arm)
-            return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
-
-        def eager(x: Tensor, us: Tensor, hs: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
-            fric, arm = model.split(theta)
-            out = []
-            for u, h in zip(us, hs, strict=True):
-                x = rk4(x, u, h, fric, arm)
-                out.append(x)
-            return x, torch.stack(out)
-
-        def traced(x: Tensor, us: Tensor, hs: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
-            def body(x0: Tensor, inp):  # type: ignore[no-untyped-def]
-                fric, arm = model.split(theta.clone())
-                x1 = rk4(x0, inp[0], inp[1], fric, arm)
-                return x1.clone(), x1.clone()
-
-            return scan(body, x, (us, hs))
-
-        _RK4_CHUNKS[key] = (model, compile_with_fallback(eager, traced))
+        _RK4_CHUNKS[key] = (model, make_chunk(one))
     return _RK4_CHUNKS[key][1]  # type: ignore[index]
 
 
@@ -208,19 +197,18 @@ def _compiled_rk4(
     model: ArmModel, grid: Tensor, u: Tensor, x0: Tensor, theta: Tensor, steps: int
 ) -> Tensor:
     """`simulate`'s rk4 on `grid` (`steps` solver steps per sample) through `_rk4_chunk`."""
+    from .ekf import pad_rows
+
     n = (grid.numel() - 1) // steps + 1
     hs = grid[1:] - grid[:-1]
     us = u[:-1].repeat_interleave(steps, dim=0)  # u_k held over its interval's sub-steps
     total = hs.numel()
-    pad = (-total) % _CHUNK
-    if pad:
-        hs = torch.cat([hs, hs.new_zeros(pad)])
-        us = torch.cat([us, us[-1:].expand(pad, *us.shape[1:])])
     chunk = _rk4_chunk(model)
-    x = x0.clone()
-    out = []
-    for i in range(0, hs.numel(), _CHUNK):
-        x, states = chunk(x, us[i : i + _CHUNK], hs[i : i + _CHUNK], theta)
-        out.append(states)
-    states = torch.cat(out)[:total][steps - 1 :: steps]
+    x, out = x0.clone(), []
+    for i in range(0, total, _CHUNK):
+        m = min(_CHUNK, total - i)
+        xs = (pad_rows(us[i : i + m], _CHUNK), pad_rows(hs[i : i + m], _CHUNK))
+        (x,), (states,) = chunk((x,), xs, torch.arange(_CHUNK) < m, (theta,))
+        out.append(states[:m])
+    states = torch.cat(out)[steps - 1 :: steps]
     return torch.cat([x0.unsqueeze(0), states])[:n]
