@@ -52,6 +52,7 @@ __all__ = [
     "CHUNK",
     "pad_rows",
     "make_chunk",
+    "chunk_options",
     "compile_with_fallback",
     "StepFn",
     "MatMul",
@@ -378,12 +379,23 @@ def make_step(
         x1, P1, *diagnostics = eager(x, P, u, y, *consts)
         return (x1, P1), tuple(diagnostics)
 
+    return Step(
+        eager, compile_with_fallback(eager), make_chunk(one, options=chunk_options(mm)), chunk
+    )
+
+
+def chunk_options(mm: MatMul) -> dict:
+    """Inductor options for a compiled chunk of steps that use the matrix product `mm`.
+
+    Always the C++ wrapper (the loop over samples in C++). With `fused_matmul` also scalar code
+    (``cpp.simdlen = 1``): the fused step's loops run over 2–20 elements, where SIMD tails cost
+    more than they save — tanh(3), one filter: 36 k against 31 k steps/s; an ensemble of 256
+    (vmapped, so still the same short loops per member): 272 k against 155 k filter-steps/s.
+    """
     options: dict = {"cpp_wrapper": True}
     if mm is fused_matmul:
-        # The fused step's loops run over 2–20 elements, where SIMD tails cost more than they
-        # save: scalar code measured 36 k against 31 k steps/s for tanh(3).
         options["cpp.simdlen"] = 1
-    return Step(eager, compile_with_fallback(eager), make_chunk(one, options=options), chunk)
+    return options
 
 
 def make_chunk(fn: Callable, *, options: dict | None = None) -> Callable:

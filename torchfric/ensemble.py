@@ -41,10 +41,12 @@ from .ekf import (
     MatMul,
     Step,
     StepFn,
+    chunk_options,
     compile_with_fallback,
     make_chunk,
     make_propagator,
     make_step,
+    matmul_for,
     pad_rows,
     update,
 )
@@ -162,9 +164,10 @@ def make_batched_step(
     -> (x⁺, P⁺, e (K,m), nis (K,), loglik (K,), ok (K,))``. Member j's outputs equal the
     single-filter step on member j's inputs (same arithmetic, tested).
     """
-    # Batched, BLAS wins: measured with the chunked scan at K = 16, 93 k filter-steps/s with
-    # torch.matmul against 47 k with fused_matmul (`benchmarks/ekf_speed.py`).
-    mm = mm or torch.matmul
+    # The same product rule as one filter (`matmul_for`): fused up to 20 states, compiled as
+    # scalar code (`chunk_options`). Measured with the chunked scan, tanh(3): 186 k / 272 k /
+    # 328 k filter-steps/s at K = 16 / 256 / 1024 against 92 k / 126 k / 125 k with BLAS calls.
+    mm = mm or matmul_for(2 + model.num_parameters)
     eager = make_step(make_propagator(model, substeps, mm=mm), mm=mm)
     batched = vmap(eager, in_dims=(0, 0, None, None, None, 0, None, 0, None))
     return compile_with_fallback(batched) if compile else batched
@@ -229,9 +232,8 @@ def make_masked_step(
     def one(*args: Tensor):  # type: ignore[no-untyped-def]
         return masked(*args), ()
 
-    return Step(
-        masked, compile_with_fallback(masked), make_chunk(one, options={"cpp_wrapper": True}), chunk
-    )
+    options = chunk_options(mm or matmul_for(2 + model.num_parameters))
+    return Step(masked, compile_with_fallback(masked), make_chunk(one, options=options), chunk)
 
 
 def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]
