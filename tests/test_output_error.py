@@ -24,11 +24,11 @@ from torchfric.output_error import (
     OETuning,
     _draw,
     _full_loss,
-    _same_grid,
-    _tiles,
     _generator,
     _prepare,
+    _same_grid,
     _scales,
+    _tiles,
     identify_output_error,
 )
 from torchfric.rig import RigParameters, excitation
@@ -259,6 +259,29 @@ def test_full_length_and_adjoint_gradients_agree(short: Experiment) -> None:
     # Same loss; the adjoint's gradient is the discrete one up to the adjoint RK4 error.
     assert a.history[0].loss == pytest.approx(b.history[0].loss, rel=1e-12)
     torch.testing.assert_close(a.theta, b.theta, rtol=1e-6, atol=1e-6)
+
+
+def test_compiled_full_length_training_equals_odeint(short: Experiment) -> None:
+    """`compile = true` runs full-length losses, their gradients (compiled discrete adjoint) and
+    validation through the compiled rk4: Adam and L-BFGS take the same steps as with odeint,
+    so θ, every recorded loss and every validation FIT agree to rounding."""
+    start = _perturbed(_true_model())
+    val = short.slice(300, 600)
+    runs = [
+        identify_output_error(
+            start, short, _quick(epochs=2, window=0, lbfgs_steps=2, compile=c), validation=val
+        )
+        for c in (False, True)
+    ]
+    ref, got = runs
+    torch.testing.assert_close(got.theta, ref.theta, rtol=1e-9, atol=1e-12)
+    assert [r.loss for r in got.history] == pytest.approx([r.loss for r in ref.history], rel=1e-9)
+    for a, b in zip(ref.history, got.history, strict=True):
+        assert (a.val_fit is None) == (b.val_fit is None)
+        if a.val_fit:
+            fa, fb = next(iter(a.val_fit.values())), next(iter(b.val_fit.values()))
+            assert fb["fit_q"] == pytest.approx(fa["fit_q"], rel=1e-9)
+    assert not torch.equal(got.theta, start.get_theta())
 
 
 def test_schedule_uses_window_stages(short: Experiment) -> None:

@@ -25,8 +25,10 @@ from .errors import TorchfricError
 __all__ = ["simulate", "rk4_step", "auto_substeps", "sample_grid", "SOLVERS", "ENGINES"]
 
 # "odeint": torchdiffeq (differentiable, the reference). "compiled": the same RK4 (3/8 rule)
-# steps on the same grid as a `torch.compile`d scan over 1000 solver steps per call, for
-# scoring without gradients (per-pass validation); agrees with "odeint" to rounding (tested).
+# steps on the same grid as a `torch.compile`d scan over 1000 solver steps per call; agrees with
+# "odeint" to rounding (tested). Its gradient (θ and x0) is the discrete adjoint of those steps:
+# a second compiled scan runs backwards through the stored solver states with the autograd VJP
+# of one step, so it equals backpropagation through odeint's rk4 to rounding (tested).
 ENGINES = ("odeint", "compiled")
 _CHUNK = 1000
 
@@ -107,9 +109,9 @@ def simulate(
         method: fixed-grid solver, one of `SOLVERS` ("rk4" default).
         substeps: solver steps per sample interval, or "auto" (`auto_substeps`).
         theta: optional θ `(k,)` in estimation coordinates (default: the model's own, differentiable).
-        engine: "odeint" (torchdiffeq, default) or "compiled" (`ENGINES`; one run of rk4
-            without gradients: a batch, another solver or a θ that needs a gradient goes
-            through odeint).
+        engine: "odeint" (torchdiffeq, default) or "compiled" (`ENGINES`: the same rk4 steps as
+            a compiled scan, batches included; gradients in θ and `x0` by a compiled discrete
+            adjoint, none in `t` or `u`; another solver goes through odeint).
 
     Returns:
         `(N, 2)` (or `(N, B, 2)`) states ``[q, q̇]`` at the sample times; row 0 is `x0`.
@@ -147,13 +149,8 @@ def simulate(
         raise TorchfricError(f"unknown simulation engine {engine!r}; choose one of {ENGINES}")
     grid = sample_grid(t, steps)
     th = model.theta_vector() if theta is None else theta
-    if (
-        engine == "compiled"
-        and method == "rk4"
-        and u.ndim == 1
-        and not (torch.is_grad_enabled() and th.requires_grad)
-    ):
-        return _compiled_rk4(model, grid, u, x0, th.detach(), steps)
+    if engine == "compiled" and method == "rk4":
+        return _compiled_rk4(model, grid, u, x0, th, steps)
     field = _ZOHField(model, t, u, theta)
     options = {"grid_constructor": lambda _f, _y0, _t: grid, "perturb": True}
     return odeint(field, x0, t, method=method, options=options)
@@ -169,46 +166,112 @@ def rk4_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm
     return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
 
 
-_RK4_CHUNKS: dict[str, object] = {}
+_RK4_CHUNKS: dict[tuple[str, str], object] = {}
 
 
-def _rk4_chunk(model: ArmModel):  # type: ignore[no-untyped-def]
-    """`torchfric.ekf.make_chunk` of `rk4_step`: ``chunk((x,), (u (C, ...), h (C,)), valid,
-    (θ,)) -> ((x,), (states (C, ...),))``, each step with its own held input and length.
-    Compiled once per process and model *structure*: θ is an input, so the fitted models of
-    successive passes share one compiled chunk."""
+def _structure_key(model: ArmModel) -> str:
+    """What fixes a model's compiled code: its spec without θ's values."""
     spec = model.spec()
     spec["friction"] = {k: v for k, v in spec["friction"].items() if k != "values"}
     spec.pop("arm", None)  # θ's physical values; everything else fixes the structure
-    key = json.dumps(spec, sort_keys=True, default=str)
+    return json.dumps(spec, sort_keys=True, default=str)
+
+
+def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-untyped-def]
+    """`torchfric.ekf.make_chunk` of `rk4_step`, compiled once per process and model
+    *structure* (θ is an input, so the fitted models of successive passes or epochs share it).
+
+    - ``"forward"``: ``chunk((x,), (u (C, ...), h (C,)), valid, (θ,)) -> ((x,), (states (C, ...),))``,
+      each step with its own held input and length.
+    - ``"backward"``: the discrete adjoint, run over the steps in reverse order:
+      ``chunk((λ, g_θ), (x_k (C, ...), u (C, ...), h (C,), g_k (C, ...)), valid, (θ,))``. With λ
+      the loss gradient with respect to the state after step k, one step gives
+      ``λ ← g_k + (∂x_{k+1}/∂x_k)ᵀ λ`` and ``g_θ ← g_θ + (∂x_{k+1}/∂θ)ᵀ λ`` (the VJP of
+      `rk4_step` by autograd), `g_k` being the loss's direct gradient with respect to x_k.
+    """
+    key = (_structure_key(model), direction)
     if key not in _RK4_CHUNKS:
         from .ekf import make_chunk
 
-        def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
-            x1 = rk4_step(model, x, u, h, *model.split(theta))
-            return (x1,), (x1,)
+        if direction == "forward":
 
-        _RK4_CHUNKS[key] = (model, make_chunk(one))
+            def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
+                x1 = rk4_step(model, x, u, h, *model.split(theta))
+                return (x1,), (x1,)
+
+        else:
+
+            def one(lam: Tensor, g_theta: Tensor, x: Tensor, u: Tensor, h: Tensor, g: Tensor,
+                    theta: Tensor):  # type: ignore[no-untyped-def]  # fmt: skip
+                def step(x_: Tensor, th: Tensor) -> Tensor:
+                    return rk4_step(model, x_, u, h, *model.split(th))
+
+                _, pull = torch.func.vjp(step, x, theta)
+                d_x, d_theta = pull(lam)
+                return (g + d_x, g_theta + d_theta), ()
+
+        _RK4_CHUNKS[key] = (model, make_chunk(one, options={"cpp_wrapper": True, "cpp.simdlen": 1}))
     return _RK4_CHUNKS[key][1]  # type: ignore[index]
 
 
-@torch.no_grad()
+def _run_chunks(chunk, carry, xs, consts, *, reverse: bool = False):  # type: ignore[no-untyped-def]
+    """Apply a `make_chunk` function along the leading axis of `xs` (T rows), `_CHUNK` rows per
+    call (the last call padded); returns the final carry and each per-row output (T rows)."""
+    from .ekf import pad_rows
+
+    total = xs[0].shape[0]
+    if reverse:
+        xs = tuple(a.flip(0) for a in xs)
+    outs: list[tuple[Tensor, ...]] = []
+    for i in range(0, total, _CHUNK):
+        m = min(_CHUNK, total - i)
+        part = tuple(pad_rows(a[i : i + m], _CHUNK) for a in xs)
+        carry, o = chunk(carry, part, torch.arange(_CHUNK) < m, consts)
+        outs.append(tuple(a[:m] for a in o))
+    joined = tuple(torch.cat(cols) for cols in zip(*outs, strict=True)) if outs else ()
+    return carry, joined
+
+
+def _rk4_states(model: ArmModel, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor) -> Tensor:
+    """Every solver state ``(T+1, [B,] 2)`` from `x0` over the steps ``(us, hs)``; no gradient."""
+    (_,), (states,) = _run_chunks(_rk4_chunk(model), (x0.clone(),), (us, hs), (theta,))
+    return torch.cat([x0.unsqueeze(0), states])
+
+
+class _CompiledRK4(torch.autograd.Function):
+    """All solver states ``(T+1, [B,] 2)`` of rk4 from `x0` over the steps ``(us, hs)``, with
+    the exact gradient of that discrete map by a compiled reverse scan (`_rk4_chunk`)."""
+
+    @staticmethod
+    def forward(ctx, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor, model: ArmModel) -> Tensor:  # type: ignore[no-untyped-def,override]
+        th = theta.detach()
+        states = _rk4_states(model, th, x0.detach(), us, hs)
+        ctx.model = model
+        ctx.save_for_backward(th, states, us, hs)
+        return states
+
+    @staticmethod
+    def backward(ctx, g_states: Tensor):  # type: ignore[no-untyped-def,override]
+        th, states, us, hs = ctx.saved_tensors
+        carry = (g_states[-1].clone(), torch.zeros_like(th))
+        xs = (states[:-1], us, hs, g_states[:-1])
+        (lam, g_theta), _ = _run_chunks(
+            _rk4_chunk(ctx.model, "backward"), carry, xs, (th,), reverse=True
+        )
+        return g_theta, lam, None, None, None
+
+
 def _compiled_rk4(
     model: ArmModel, grid: Tensor, u: Tensor, x0: Tensor, theta: Tensor, steps: int
 ) -> Tensor:
-    """`simulate`'s rk4 on `grid` (`steps` solver steps per sample) through `_rk4_chunk`."""
-    from .ekf import pad_rows
-
+    """`simulate`'s rk4 on `grid` (`steps` solver steps per sample) through `_rk4_chunk`;
+    differentiable in θ and x0 (`_CompiledRK4`) when either needs a gradient."""
     n = (grid.numel() - 1) // steps + 1
     hs = grid[1:] - grid[:-1]
     us = u[:-1].repeat_interleave(steps, dim=0)  # u_k held over its interval's sub-steps
-    total = hs.numel()
-    chunk = _rk4_chunk(model)
-    x, out = x0.clone(), []
-    for i in range(0, total, _CHUNK):
-        m = min(_CHUNK, total - i)
-        xs = (pad_rows(us[i : i + m], _CHUNK), pad_rows(hs[i : i + m], _CHUNK))
-        (x,), (states,) = chunk((x,), xs, torch.arange(_CHUNK) < m, (theta,))
-        out.append(states[:m])
-    states = torch.cat(out)[steps - 1 :: steps]
-    return torch.cat([x0.unsqueeze(0), states])[:n]
+    if torch.is_grad_enabled() and (theta.requires_grad or x0.requires_grad):
+        states = _CompiledRK4.apply(theta, x0, us, hs, model)
+    else:
+        with torch.no_grad():
+            states = _rk4_states(model, theta.detach(), x0.detach(), us, hs)
+    return states[::steps][:n]
