@@ -46,7 +46,7 @@ DATA = ROOT.parent / "shared" / "data"
 CONFIGS = ROOT / "experiments" / "configs"
 
 RUNS: dict[str, list[str]] = {
-    "emps": ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe"],
+    "emps": ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe", "emps_tanh_asym_oe"],
     "hsm150": ["hsm150_tanh_oe", "hsm150_tanh_asym_oe"],
     "disc": ["disc_tanh_ekf", "disc_tanh_oe"],
 }
@@ -131,6 +131,7 @@ def emps_score(model: ArmModel) -> dict[str, Any]:
         "inertia": p["inertia"],
         "viscous": p.get("viscous", float("nan")),
         "offset": p.get("offset", 0.0),
+        "asymmetric": p.get("asymmetric", float("nan")),
         "friction_N": dict(zip(map(str, EMPS_V), _friction_at(model, EMPS_V), strict=True)),
     }
 
@@ -258,7 +259,7 @@ def print_table(results: dict[str, Any]) -> None:
         print("EMPS (test: DATA_EMPS_PULSES.mat, 1000·RMSE(qm[20:], ŷ[20:]) in mm)")
         print(
             f"{'model':<46}{'test mm':>9}{'train mm':>10}{'M kg':>9}{'b N·s/m':>10}"
-            f"{'offset N':>10}  friction N at q̇ = " + ", ".join(f"{v:+g}" for v in EMPS_V)
+            f"{'offset N':>10}{'a N·s/m':>9}  friction N at q̇ = " + ", ".join(f"{v:+g}" for v in EMPS_V)
         )
         for name, r in results["emps"].items():
             if "missing" in r:
@@ -267,7 +268,8 @@ def print_table(results: dict[str, Any]) -> None:
             fr = ", ".join(f"{x:+.1f}" for x in r["friction_N"].values())
             print(
                 f"{name:<46}{r['test_rmse_mm']:>9.2f}{r['train_rmse_mm']:>10.2f}"
-                f"{r['inertia']:>9.2f}{_fmt(r['viscous'], '.1f'):>10}{r['offset']:>10.2f}  {fr}"
+                f"{r['inertia']:>9.2f}{_fmt(r['viscous'], '.1f'):>10}{r['offset']:>10.2f}"
+                f"{_fmt(r['asymmetric'], '.1f'):>9}  {fr}"
             )
         for name, mm in EMPS_RESULTS_MM.items():
             print(f"{name:<46}{mm:>9.2f}   (published)")

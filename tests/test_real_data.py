@@ -34,7 +34,9 @@ def _config(name: str, *overrides: str) -> Config:
 
 
 # --------------------------------------------------------------------------- EMPS
-@pytest.mark.parametrize("name", ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe"])
+@pytest.mark.parametrize(
+    "name", ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe", "emps_tanh_asym_oe"]
+)
 def test_emps_config_maps_columns_and_units(shared_data: pathlib.Path, name: str) -> None:
     cfg = _config(name)
     folder = shared_data / "emps"
