@@ -25,7 +25,9 @@ loop (`run_pass`) and the iterative off-line identification (`identify_ekf`, in
 
 from __future__ import annotations
 
+import itertools
 import math
+import types
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -436,6 +438,26 @@ def make_chunk(fn: Callable, *, options: dict | None = None) -> Callable:
     return compile_with_fallback(loop, traced, options=options)
 
 
+_COMPILES = itertools.count()
+
+
+def _own_code(fn: Callable) -> Callable:
+    """`fn` with a code object of its own (a renamed copy), for `torch.compile`.
+
+    Dynamo keeps its compiled entries on the *code object* and allows at most
+    ``torch._dynamo.config.recompile_limit`` (8) per code object. Every step, ensemble and rk4
+    chunk is the same closure code with other captured models and shapes, so the ninth
+    compiled model in a process would silently run eagerly (measured: an ensemble of 64 at
+    10 k instead of 200 k filter-steps/s in `benchmarks/ekf_speed.py`). A copy per compiled
+    function keeps every cache separate; it is freed with the function."""
+    if not isinstance(fn, types.FunctionType):
+        return fn
+    code = fn.__code__.replace(co_name=f"{fn.__code__.co_name}_{next(_COMPILES)}")
+    own = types.FunctionType(code, fn.__globals__, code.co_name, fn.__defaults__, fn.__closure__)
+    own.__kwdefaults__ = fn.__kwdefaults__
+    return own
+
+
 def compile_with_fallback(
     eager: Callable, traced: Callable | None = None, *, options: dict | None = None
 ) -> Callable:
@@ -443,7 +465,9 @@ def compile_with_fallback(
     shapes, `options`), compiled on the first call; if compilation fails for any reason `eager`
     is used from then on — same arithmetic. The returned function carries `.eager` and
     `.chosen` (the function in use)."""
-    compiled = torch.compile(traced or eager, dynamic=False, fullgraph=True, options=options)
+    compiled = torch.compile(
+        _own_code(traced or eager), dynamic=False, fullgraph=True, options=options
+    )
     chosen: list[Callable] = []
 
     def fast(*args: Tensor):  # type: ignore[no-untyped-def]
