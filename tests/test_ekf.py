@@ -930,8 +930,8 @@ def test_more_compiled_chunks_than_dynamos_per_code_limit_all_stay_compiled() ->
     """Every compiled chunk is the same closure code with another captured function; dynamo
     allows 8 compiled entries per code object, after which the ninth model in a process used
     to fall back to the eager loop (the ensemble benchmark's K = 64 ran at 10 k instead of
-    200 k filter-steps/s). Each compiled function now has its own code object: 10 chunks, all
-    alive at once, all run compiled, and each computes its own function."""
+    200 k filter-steps/s). Our compiled calls now run without that limit: 10 chunks, all alive
+    at once, all run compiled, and each computes its own function."""
     limit = torch._dynamo.config.recompile_limit
     chunks = []
     for i in range(limit + 2):

@@ -25,11 +25,10 @@ loop (`run_pass`) and the iterative off-line identification (`identify_ekf`, in
 
 from __future__ import annotations
 
-import itertools
+import contextlib
 import math
-import types
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -438,24 +437,24 @@ def make_chunk(fn: Callable, *, options: dict | None = None) -> Callable:
     return compile_with_fallback(loop, traced, options=options)
 
 
-_COMPILES = itertools.count()
-
-
-def _own_code(fn: Callable) -> Callable:
-    """`fn` with a code object of its own (a renamed copy), for `torch.compile`.
+@contextlib.contextmanager
+def _unlimited_recompiles() -> Iterator[None]:
+    """Lift dynamo's per-code-object recompile limit while one of our compiled calls runs.
 
     Dynamo keeps its compiled entries on the *code object* and allows at most
     ``torch._dynamo.config.recompile_limit`` (8) per code object. Every step, ensemble and rk4
-    chunk is the same closure code with other captured models and shapes, so the ninth
-    compiled model in a process would silently run eagerly (measured: an ensemble of 64 at
-    10 k instead of 200 k filter-steps/s in `benchmarks/ekf_speed.py`). A copy per compiled
-    function keeps every cache separate; it is freed with the function."""
-    if not isinstance(fn, types.FunctionType):
-        return fn
-    code = fn.__code__.replace(co_name=f"{fn.__code__.co_name}_{next(_COMPILES)}")
-    own = types.FunctionType(code, fn.__globals__, code.co_name, fn.__defaults__, fn.__closure__)
-    own.__kwdefaults__ = fn.__kwdefaults__
-    return own
+    chunk is the same closure code (`make_chunk`'s) with other captured models and shapes, so
+    the ninth compiled model in a process used to fall back to the eager loop (measured: an
+    ensemble of 64 at 10 k instead of 200 k filter-steps/s in `benchmarks/ekf_speed.py`).
+    Entries stay shared, so a step re-made for the same model still finds its compiled code.
+    The user's own compiled code keeps the limit they set."""
+    cfg = torch._dynamo.config
+    saved = cfg.recompile_limit, cfg.accumulated_recompile_limit
+    cfg.recompile_limit = cfg.accumulated_recompile_limit = 1 << 30
+    try:
+        yield
+    finally:
+        cfg.recompile_limit, cfg.accumulated_recompile_limit = saved
 
 
 def compile_with_fallback(
@@ -465,10 +464,12 @@ def compile_with_fallback(
     shapes, `options`), compiled on the first call; if compilation fails for any reason `eager`
     is used from then on — same arithmetic. The returned function carries `.eager` and
     `.chosen` (the function in use)."""
-    compiled = torch.compile(
-        _own_code(traced or eager), dynamic=False, fullgraph=True, options=options
-    )
+    compiled_fn = torch.compile(traced or eager, dynamic=False, fullgraph=True, options=options)
     chosen: list[Callable] = []
+
+    def compiled(*args: Tensor):  # type: ignore[no-untyped-def]
+        with _unlimited_recompiles():  # (a new shape later recompiles under the same rule)
+            return compiled_fn(*args)
 
     def fast(*args: Tensor):  # type: ignore[no-untyped-def]
         if chosen:
