@@ -37,13 +37,20 @@ def rig(name: str):  # type: ignore[no-untyped-def]
     return make_experiment(d["t"], d["u"], d["q"], name=name).with_velocity("highpass")
 
 
+def friction_reference(experiments) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[no-untyped-def]
+    """Velocities over the excited sliding range of `experiments` (5 % to 100 % of their peak
+    |q̇|, both signs; the stick band is not a curve) and the rig's true steady-state friction
+    there: what `friction_curve_error` compares an identified curve with."""
+    v_peak = float(max(e.qdot.abs().max() for e in experiments))
+    v = torch.linspace(-v_peak, v_peak, 801)
+    v = v[v.abs() > 0.05 * v_peak]
+    return v, torch.as_tensor(RigParameters().steady_state_friction(v.numpy()))
+
+
 def accuracy(models: dict[str, tuple[ArmModel, dict]]) -> list[dict]:
     truth = RigParameters()
     ident, val, extra = rig("identification"), rig("validation"), rig("extrapolation")
-    v_peak = float(ident.qdot.abs().max())
-    v = torch.linspace(-v_peak, v_peak, 801)
-    v = v[v.abs() > 0.05 * v_peak]  # the excited sliding range; the stick band is not a curve
-    ref = torch.as_tensor(truth.steady_state_friction(v.numpy()))
+    v, ref = friction_reference([ident])
     rows = []
     for name, (model, meta) in models.items():
         sv, se = score_simulation(model, val), score_simulation(model, extra)

@@ -33,6 +33,7 @@ import statistics
 import time
 
 import torch
+from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric import EKFTuning, identify_ekf, identify_output_error
 from torchfric.config import Config
@@ -78,11 +79,7 @@ def main() -> None:
     thetas = random_thetas(
         guess, guess.get_theta(), args.starts, 3.0, torch.Generator().manual_seed(args.seed)
     )
-    rig = RigParameters()
-    v_peak = float(max(e.qdot.abs().max() for e in train))
-    v = torch.linspace(-v_peak, v_peak, 801)
-    v = v[v.abs() > 0.05 * v_peak]
-    ref = torch.as_tensor(rig.steady_state_friction(v.numpy()))
+    v, ref = friction_reference(train)
     oe = OETuning(epochs=0, window=0, lbfgs_steps=args.lbfgs, substeps="auto", compile=True)
     ekf = EKFTuning(compile=True)
     rows = []

@@ -30,6 +30,7 @@ import statistics
 import time
 
 import torch
+from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.config import Config
 from torchfric.ensemble import DIVERGED, identify_ekf_ensemble, random_thetas
@@ -77,14 +78,8 @@ def run_group(kind: str, init: str, args: argparse.Namespace) -> dict:
         max_substeps=args.max_substeps,
     )
     seconds = time.perf_counter() - t0
-    rig = RigParameters()
-    truth = rig.inertia
-    # the friction curve against the rig's steady-state curve over the excited sliding range
-    # (as benchmarks/ekf_rig.py): |v| from 5 % of the identification data's peak speed to it
-    v_peak = float(max(e.qdot.abs().max() for e in train))
-    v = torch.linspace(-v_peak, v_peak, 801)
-    v = v[v.abs() > 0.05 * v_peak]
-    ref = torch.as_tensor(rig.steady_state_friction(v.numpy()))
+    truth = RigParameters().inertia
+    v, ref = friction_reference(train)  # the rig's curve over the excited range
     rows = []
     for m in ens.members:
         fit = next(iter(m.fits.values()), {"fit_q": float("nan"), "fit_qdot": float("nan")})

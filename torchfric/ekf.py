@@ -52,6 +52,7 @@ __all__ = [
     "Step",
     "CHUNK",
     "pad_rows",
+    "iter_chunks",
     "make_chunk",
     "chunk_options",
     "compile_with_fallback",
@@ -578,18 +579,13 @@ def run_pass(
     bound = torch.tensor(theta_bound, dtype=torch.float64)
     chunk = getattr(step_fn, "chunk", None)
     if chunk is not None:
-        size = step_fn.size  # type: ignore[attr-defined]
-        for k0 in range(1, y.shape[0], size):
-            n = min(size, y.shape[0] - k0)
-            us, ys = pad_rows(u[k0 - 1 : k0 - 1 + n], size), pad_rows(y[k0 : k0 + n], size)
-            valid = torch.arange(size) < n
-            (x, P), (e, nis, ll, ok) = chunk(
-                (state.x, state.P), (us, ys), valid, (dt, Q, H, R, bound)
-            )
+        # sample k = 1 + i is driven by u[k − 1] and measured by y[k]
+        for i, n, xs, valid in iter_chunks((u[:-1], y[1:]), step_fn.size):  # type: ignore[attr-defined]
+            (x, P), (e, nis, ll, ok) = chunk((state.x, state.P), xs, valid, (dt, Q, H, R, bound))
             ok = ok[:n]
             if not bool(ok.all()):
-                _replay_failure(state, u, y, k0, int((~ok).nonzero()[0, 0]), dt, Q, H, R, bound,
-                                step_fn, theta_bound, sample_offset)  # fmt: skip
+                _replay_failure(state, u, y, 1 + i, int((~ok).nonzero()[0, 0]), dt, Q, H, R,
+                                bound, step_fn, theta_bound, sample_offset)  # fmt: skip
             state = EKFState(x, P)
             sum_e2 = sum_e2 + (e[:n] * e[:n]).sum(0)
             sum_nis = sum_nis + nis[:n].sum()
@@ -599,9 +595,8 @@ def run_pass(
             x, P, e, nis, ll, ok = step_fn(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
             # Checked every sample (one sync), so a failure names the exact sample.
             if not bool(ok):
-                inn = Innovation(e, e.new_empty(0), nis, ll)
-                reason = _check(EKFState(x, P), inn, theta_bound) or "the filter became unhealthy"
-                raise FilterFailure(sample_offset + k, reason, state)
+                reason = _failure_reason(x, P, e, nis, ll, theta_bound)
+                raise FilterFailure(sample_offset + k, reason or _UNHEALTHY, state)
             state = EKFState(x, P)
             sum_e2 = sum_e2 + e * e
             sum_nis = sum_nis + nis
@@ -613,11 +608,33 @@ def run_pass(
     return state, stats
 
 
+_UNHEALTHY = "the filter became unhealthy"
+
+
+def _failure_reason(
+    x: Tensor, P: Tensor, e: Tensor, nis: Tensor, ll: Tensor, theta_bound: float
+) -> str | None:
+    """`_check`'s message for one step's outputs (None when every check passes)."""
+    return _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound)
+
+
 def pad_rows(a: Tensor, size: int) -> Tensor:
     """`a` extended to `size` rows by repeating its last row (padding the scan never uses)."""
     if a.shape[0] == size:
         return a
     return torch.cat([a, a[-1:].expand(size - a.shape[0], *a.shape[1:])])
+
+
+def iter_chunks(
+    xs: tuple[Tensor, ...], size: int
+) -> Iterator[tuple[int, int, tuple[Tensor, ...], Tensor]]:
+    """The inputs of successive `make_chunk` calls along the leading axis of `xs`:
+    ``(start, m, padded xs (size rows each), valid (size,))`` with the last chunk's `m` real
+    rows padded by `pad_rows` and marked invalid."""
+    total = xs[0].shape[0]
+    for i in range(0, total, size):
+        m = min(size, total - i)
+        yield i, m, tuple(pad_rows(a[i : i + m], size) for a in xs), torch.arange(size) < m
 
 
 def _replay_failure(
@@ -642,7 +659,7 @@ def _replay_failure(
     eager = step_fn.eager  # type: ignore[attr-defined]
     for k in range(k0, k0 + bad + 1):
         x, P, e, nis, ll, ok = eager(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
-        reason = _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound)
+        reason = _failure_reason(x, P, e, nis, ll, theta_bound)
         if reason or k == k0 + bad:
-            raise FilterFailure(sample_offset + k, reason or "the filter became unhealthy", state)
+            raise FilterFailure(sample_offset + k, reason or _UNHEALTHY, state)
         state = EKFState(x, P)

@@ -43,11 +43,11 @@ from .ekf import (
     StepFn,
     chunk_options,
     compile_with_fallback,
+    iter_chunks,
     make_chunk,
     make_propagator,
     make_step,
     matmul_for,
-    pad_rows,
     update,
 )
 from .errors import TorchfricError
@@ -194,6 +194,7 @@ def make_masked_step(
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
     samples (and no per-sample outputs).
     """
+    mm = mm or matmul_for(2 + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
 
     def masked(
@@ -232,7 +233,7 @@ def make_masked_step(
     def one(*args: Tensor):  # type: ignore[no-untyped-def]
         return masked(*args), ()
 
-    options = chunk_options(mm or matmul_for(2 + model.num_parameters))
+    options = chunk_options(mm)
     return Step(masked, compile_with_fallback(masked), make_chunk(one, options=options), chunk)
 
 
@@ -493,14 +494,10 @@ def identify_ekf_ensemble(
             index = torch.arange(exp.n)
             carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
             if step_fn.chunk is not None:
-                size = step_fn.size
-                for j0 in range(1, exp.n, size):
-                    m = min(size, exp.n - j0)
-                    valid = torch.arange(size) < m
-                    xs = (pad_rows(index[j0 : j0 + m], size), pad_rows(u[j0 - 1 : j0 - 1 + m], size),
-                          pad_rows(y[j0 : j0 + m], size))  # fmt: skip
+                # sample j = 1 + i is driven by u[j − 1] and measured by y[j]
+                for i, m, xs, valid in iter_chunks((index[1:], u[:-1], y[1:]), step_fn.size):
                     carry, _ = step_fn.chunk(carry, xs, valid, (dt, Qk, H, Rk, bound))
-                    callback.on_progress(p, samples + j0 + m, total)
+                    callback.on_progress(p, samples + 1 + i + m, total)
             else:
                 for j in range(1, exp.n):
                     carry = step_fn(*carry, index[j], u[j - 1], y[j], dt, Qk, H, Rk, bound)

@@ -191,7 +191,7 @@ def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-
     """
     key = (_structure_key(model), direction)
     if key not in _RK4_CHUNKS:
-        from .ekf import make_chunk
+        from .ekf import chunk_options, fused_matmul, make_chunk
 
         if direction == "forward":
 
@@ -210,23 +210,21 @@ def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-
                 d_x, d_theta = pull(lam)
                 return (g + d_x, g_theta + d_theta), ()
 
-        _RK4_CHUNKS[key] = (model, make_chunk(one, options={"cpp_wrapper": True, "cpp.simdlen": 1}))
+        # Its loops run over 2 states and a few parameters, like the fused EKF step's.
+        _RK4_CHUNKS[key] = (model, make_chunk(one, options=chunk_options(fused_matmul)))
     return _RK4_CHUNKS[key][1]  # type: ignore[index]
 
 
 def _run_chunks(chunk, carry, xs, consts, *, reverse: bool = False):  # type: ignore[no-untyped-def]
     """Apply a `make_chunk` function along the leading axis of `xs` (T rows), `_CHUNK` rows per
     call (the last call padded); returns the final carry and each per-row output (T rows)."""
-    from .ekf import pad_rows
+    from .ekf import iter_chunks
 
-    total = xs[0].shape[0]
     if reverse:
         xs = tuple(a.flip(0) for a in xs)
     outs: list[tuple[Tensor, ...]] = []
-    for i in range(0, total, _CHUNK):
-        m = min(_CHUNK, total - i)
-        part = tuple(pad_rows(a[i : i + m], _CHUNK) for a in xs)
-        carry, o = chunk(carry, part, torch.arange(_CHUNK) < m, consts)
+    for _, m, part, valid in iter_chunks(xs, _CHUNK):
+        carry, o = chunk(carry, part, valid, consts)
         outs.append(tuple(a[:m] for a in o))
     joined = tuple(torch.cat(cols) for cols in zip(*outs, strict=True)) if outs else ()
     return carry, joined
