@@ -38,6 +38,9 @@ def _config(tmp: pathlib.Path, name: str = "short", friction: str = "tanh") -> p
             [model]
             friction = "{friction}"
             c_m = 16.0
+            [estimator]
+            ensemble = 0  # one filter: these tests follow its passes (the default ensemble:
+                          # tests/test_ensemble.py)
             """
         )
     )

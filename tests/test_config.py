@@ -61,6 +61,7 @@ def test_defaults() -> None:
     assert (e.p0_state, e.p0_theta, e.q_state, e.q_theta) == ((0.0, 0.0), 1.0, (0.0, 1e-3), 0.0)
     assert (e.r, e.measure, e.substeps, e.theta_bound) == ((1e-3, 1e-2), "both", 1, 1e6)
     assert (e.epochs, e.lr, e.window, e.batch) == (200, 0.01, 200, 64)  # = OETuning defaults
+    assert (e.ensemble, e.ensemble_q_scales, e.ensemble_r_scales) == (1, (0.1, 1, 10), (0.1, 1, 10))
     assert c.simulation == SimulationConfig(method="rk4", substeps="auto")
     assert Config.loads("") == c
 

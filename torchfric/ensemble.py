@@ -16,8 +16,8 @@ masks on the device and read once per stretch.
 
 After the passes, the member with the best validation FIT (mean over validation experiments of
 the q and q̇ FIT of an open-loop simulation, all members simulated as one batch) is kept — or
-the best innovation log-likelihood when no validation data are given — and the spread of all
-members' results is reported: a cheap measure of how trustworthy the identification is.
+the best FIT on the training experiments when no validation data are given — and the spread of
+all members' results is reported: a cheap measure of how trustworthy the identification is.
 """
 
 from __future__ import annotations
@@ -294,7 +294,7 @@ class MemberSummary:
     passes: int
     loglik: float  # of the member's kept pass (-inf if none)
     inertia: float
-    score: float  # selection score: validation FIT % (or loglik); -inf for diverged
+    score: float  # selection score: mean FIT % of q and q̇ (validation, else training data)
     fits: dict[str, dict[str, float]] = field(default_factory=dict)
     reason: str = ""
 
@@ -311,7 +311,7 @@ class EnsembleResult:
     thetas: Tensor  # (K, k) final θ of every member
     P_thetas: Tensor  # (K, k, k)
     members: list[MemberSummary]
-    selected_by: str  # "validation_fit" | "loglik"
+    selected_by: str  # "validation_fit" | "train_fit" | "loglik" (when no member simulates)
     seconds: float
     filter_steps: int  # member-samples filtered (K × samples × passes run)
 
@@ -375,7 +375,8 @@ def identify_ekf_ensemble(
         tuning: the base `EKFTuning`; each member scales its Q and R.
         spec: `EnsembleSpec` (used when `members` is None).
         members: explicit ``(θ (K,k), q_scale (K,), r_scale (K,))``.
-        validation: experiments for the selection by open-loop FIT (else: log-likelihood).
+        validation: experiments for the selection by open-loop FIT (else the training
+            experiments are simulated for it).
         max_substeps: members too stiff to simulate with this many RK4 sub-steps per sample
             are scored as failed runs in the selection.
         callback: `EnsembleCallback`.
@@ -564,21 +565,26 @@ def identify_ekf_ensemble(
     # A member that diverged after good passes keeps its last good pass (like identify_ekf's
     # last_good); it stays eligible but is reported as diverged.
     theta = torch.where(torch.tensor([s == DIVERGED for s in status])[:, None], best_theta, theta)
+    # Selection by open-loop simulation: on the validation data, else on the training data.
+    # Not by the innovation likelihood: members differ in R and Q, and the likelihood prefers the
+    # smallest R that the data allow, which on the rig is the member with the worst friction
+    # curve (benchmarks/robustness.py). The likelihood only decides when no member simulates.
     scores = torch.full((K,), -math.inf, dtype=f64)
     fits: list[dict[str, dict[str, float]]] = [{} for _ in range(K)]
-    if validation:
-        idx = torch.tensor(alive)
-        total_fit = torch.zeros(len(alive), dtype=f64)
-        for v in validation:
-            sim = simulate_members(model, theta[idx], v, max_substeps=max_substeps)
-            fq, fv = _fit(v.q.to(f64), sim[..., 0]), _fit(v.qdot.to(f64), sim[..., 1])
-            total_fit += 0.5 * (fq + fv)
-            for a, i in enumerate(alive):
-                fits[i][v.name] = {"fit_q": float(fq[a]), "fit_qdot": float(fv[a])}
-        total_fit = torch.nan_to_num(total_fit / len(validation), nan=-math.inf)
-        scores[idx] = total_fit
-        selected_by = "validation_fit"
-    else:
+    scored = list(validation) or exps
+    idx = torch.tensor(alive)
+    total_fit = torch.zeros(len(alive), dtype=f64)
+    for v in scored:
+        sim = simulate_members(model, theta[idx], v, max_substeps=max_substeps)
+        fq = _fit(v.q.to(f64), sim[..., 0])
+        fv = _fit(v.qdot.to(f64), sim[..., 1]) if v.qdot is not None else fq
+        total_fit += 0.5 * (fq + fv)
+        for a, i in enumerate(alive):
+            fits[i][v.name] = {"fit_q": float(fq[a]), "fit_qdot": float(fv[a])}
+    total_fit = torch.nan_to_num(total_fit / len(scored), nan=-math.inf)
+    scores[idx] = total_fit
+    selected_by = "validation_fit" if validation else "train_fit"
+    if not bool(torch.isfinite(scores).any()):
         for i in alive:
             scores[i] = best_ll[i]
         selected_by = "loglik"

@@ -429,6 +429,10 @@ class _EnsembleLogger(EnsembleCallback):
         return None
 
 
+def _scales(scales: tuple[float, ...]) -> str:
+    return "{" + ", ".join(f"{v:g}" for v in scales) + "}" if len(scales) > 1 else f"{scales[0]:g}"
+
+
 def _run_ensemble(
     cfg: Config,
     model: ArmModel,
@@ -438,9 +442,14 @@ def _run_ensemble(
     run: pathlib.Path,
 ):  # type: ignore[no-untyped-def]
     spec = cfg.estimator.ensemble_spec(cfg.seed)
+    starts = (
+        "the initial θ"
+        if spec.members == 1
+        else f"{spec.members} starts ×/÷ {spec.spread:g} around the initial θ"
+    )
     logger.say(
-        f"  ensemble of {spec.size} filters ({spec.members} starts ×/÷ {spec.spread:g} around "
-        f"the initial θ × {len(spec.q_scales)} Q × {len(spec.r_scales)} R scalings), one batch"
+        f"  ensemble of {spec.size} filters ({starts} × Q ×{_scales(spec.q_scales)} × "
+        f"R ×{_scales(spec.r_scales)}), one batch; estimator.ensemble = 0 runs one filter"
     )
     ens = identify_ekf_ensemble(
         model,
