@@ -1,30 +1,42 @@
-"""Robustness of the iterative EKF to the initial guess and the tuning (issue 9). Prints a table.
+"""Robustness of identification to the initial guess and the tuning (issue 9). Prints a table.
 
-    python benchmarks/robustness.py                       # the full study (about 40 min here)
-    python benchmarks/robustness.py --starts 5 --passes 3 # a quick look
+    python benchmarks/robustness.py                  # the study (about 15 min here)
+    python benchmarks/robustness.py --stress         # + the pre-fit itself perturbed ×/÷ 3
+    python benchmarks/robustness.py --starts 5 --passes 3 --models tanh   # a quick look
     python benchmarks/robustness.py --json results.json
 
-For each friction model (tanh(3), polytopic(3)) and each initialisation (`config`: the configs'
-constant guesses; `prefit`: the inverse-dynamics pre-fit), `--starts` initial guesses are drawn
-over a broad box — every parameter of the start scaled by a log-uniform factor in [1/3, 3]
-(member 0 is the start itself) — and each is combined with every Q scaling and every R scaling
-in {÷10, ×1, ×10}: 20 × 3 × 3 = 180 filters, run as ONE batched ensemble
-(`torchfric.ensemble.identify_ekf_ensemble`, compiled) over the rig's identification data (30 s
-at 1 kHz, paper tuning otherwise, 10 passes, rollback on). Every member is then simulated open
-loop on the validation experiment.
+The issue's protocol, for tanh(3) and polytopic(3) on the synthetic rig (30 s identification
+data at 1 kHz, the paper's tuning otherwise, 10 passes, rollback on):
 
-Reported per group: the fraction of runs with inertia within 1 % of the truth, with validation
-FIT ≥ 95 % on q and q̇ (issue 3's target, which even the best single EKF run misses on q, see the
-README), with both FITs ≥ 85 % ("useful"), the number that diverged, the spread of the final
-FITs, and whether the member the ensemble keeps (best validation FIT) meets the criteria. A run
-whose identified model is so stiff that its simulation would need more than `--max-substeps` (8)
-RK4 steps per 1 ms sample is counted as failed ("too stiff").
+* `--starts` (20) random initial guesses over a broad box: every parameter of the config's
+  guess (M 0.03, b 0.01, the friction module's default parameters) scaled by a log-uniform
+  factor in [1/3, 3]; guess 0 is the config's guess itself;
+* every guess under every user tuning Q × {÷10, 1, ×10} and R × {÷10, 1, ×10} (9 tunings);
+* `model.init = "config"`: the filter starts from the guess (one filter per guess and tuning);
+* `model.init = "prefit"` (the default): the filter starts from the inverse-dynamics pre-fit of
+  the guess. The pre-fit reads only the guess's structure, not its values, so all guesses give
+  the same start (the table states the largest difference found) and a run's outcome depends on
+  its tuning alone: the distinct runs are filtered once;
+* `prefit + ensemble` (the default `torchfric train` run): each run is the default ensemble — the
+  run's start under its user tuning × Q {÷10, 1, ×10} × R {÷10, 1, ×10} — keeping the member
+  with the best validation FIT. All ensembles of a start are filtered together as the 25
+  distinct absolute tunings (Q and R from ÷100 to ×100) and each run's selection is made among
+  its own 9 members, exactly as `identify_ekf_ensemble` selects. "no validation data" repeats
+  the selection with the training-data FIT (what an ensemble does without validation files);
+* `--stress`: the pre-fit itself perturbed ×/÷ 3 (every parameter), 20 such starts × 9 tunings.
+
+Every filter of a group runs in ONE batched ensemble (`identify_ekf_ensemble`, compiled); every
+member is simulated open loop on the validation experiment. A run "meets physics" with inertia
+within 1 % of the truth and friction curve within 5 % of the rig's steady-state curve over the
+excited range (issue 3's physical targets). A run whose model would need more than
+`--max-substeps` (8) RK4 steps per 1 ms sample to simulate counts as failed ("too stiff").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import pathlib
 import statistics
 import time
@@ -33,110 +45,195 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.config import Config
-from torchfric.ensemble import DIVERGED, identify_ekf_ensemble, random_thetas
+from torchfric.ensemble import DIVERGED, _fit, identify_ekf_ensemble, random_thetas, simulate_members
 from torchfric.metrics import friction_curve_error
+from torchfric.prefit import prefit
 from torchfric.rig import RigParameters
-from torchfric.runner import initial_model, load_data
+from torchfric.runner import config_model, load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCALES = (0.1, 1.0, 10.0)
+F64 = torch.float64
 
 
-def members(model, starts: int, spread: float, seed: int):  # type: ignore[no-untyped-def]
-    g = torch.Generator().manual_seed(seed)
-    th = random_thetas(model, model.get_theta(), starts, spread, g)
-    rows, qs, rs = [], [], []
-    for i in range(starts):
-        for q in SCALES:
-            for r in SCALES:
-                rows.append(th[i])
-                qs.append(q)
-                rs.append(r)
-    f64 = torch.float64
-    return torch.stack(rows), torch.tensor(qs, dtype=f64), torch.tensor(rs, dtype=f64)
-
-
-def run_group(kind: str, init: str, args: argparse.Namespace) -> dict:
-    cfg = Config.load(
-        ROOT / "experiments" / "configs" / f"arm_{kind}_ekf.toml",
-        [
-            f"model.init={init}",
-            f"estimator.passes={args.passes}",
-            "data.test=[]",
-        ],
-    )
-    train, val, _, _ = load_data(cfg)
-    model, _ = initial_model(cfg, train)
-    thetas, qs, rs = members(model, args.starts, 3.0, args.seed)
-    t0 = time.perf_counter()
+def filter_runs(kind, cfg, model, train, val, thetas, qs, rs, args) -> list[dict]:  # type: ignore[no-untyped-def]
+    """Run the K filters (θ start, Q scale, R scale) as one ensemble; one row of results each."""
     ens = identify_ekf_ensemble(
         model,
         train,
         cfg.estimator.ekf_tuning(),
-        members=(thetas, qs, rs),
+        members=(thetas, torch.as_tensor(qs, dtype=F64), torch.as_tensor(rs, dtype=F64)),
         validation=val,
         max_substeps=args.max_substeps,
     )
-    seconds = time.perf_counter() - t0
     truth = RigParameters().inertia
-    v, ref = friction_reference(train)  # the rig's curve over the excited range
+    v, ref = friction_reference(train)
+    # The training-data FIT, for the selection an ensemble makes without validation data.
+    train_score = torch.zeros(len(ens.members), dtype=F64)
+    for e in train:
+        sim = simulate_members(model, ens.thetas, e, max_substeps=args.max_substeps)
+        fq, fv = _fit(e.q.to(F64), sim[..., 0]), _fit(e.qdot.to(F64), sim[..., 1])
+        train_score += 0.5 * (fq + fv) / len(train)
     rows = []
     for m in ens.members:
-        fit = next(iter(m.fits.values()), {"fit_q": float("nan"), "fit_qdot": float("nan")})
-        err = 100 * (m.inertia / truth - 1)
+        fit = next(iter(m.fits.values()), {"fit_q": math.nan, "fit_qdot": math.nan})
         with torch.no_grad():
-            fric = 100 * friction_curve_error(model.set_theta(ens.thetas[m.index]), v, ref)
+            fric = float(100 * friction_curve_error(model.set_theta(ens.thetas[m.index]), v, ref))
         rows.append(
             {
-                "member": m.index,
                 "q_scale": m.q_scale,
                 "r_scale": m.r_scale,
                 "status": m.status,
-                "inertia_err_%": err,
+                "alive": m.status != DIVERGED or m.passes > 0,
+                "inertia_err_%": 100 * (m.inertia / truth - 1),
                 "friction_err_%": fric,
                 "fit_q": fit["fit_q"],
                 "fit_qdot": fit["fit_qdot"],
+                "score_validation": m.score,
+                "score_train": float(train_score[m.index]),
             }
         )
+    print(f"  {kind}: {len(rows)} filters in {ens.seconds:.0f} s", flush=True)
+    return rows
 
+
+def select(members: list[dict], key: str) -> dict:
+    """The member `identify_ekf_ensemble` keeps: the first best finite score among the alive."""
+
+    def score(r: dict) -> float:
+        s = r[key]
+        return s if r["alive"] and s == s else -math.inf
+
+    return max(members, key=score)  # max() keeps the first of equals, like torch.argmax
+
+
+def summarise(label: str, kind: str, runs: list[dict], distinct: int, seconds: float) -> dict:
     def ok_inertia(r: dict) -> bool:
         return r["status"] != DIVERGED and abs(r["inertia_err_%"]) <= 1.0
 
-    def ok_physics(r: dict) -> bool:  # issue 3's physical targets: inertia 1 %, curve 5 %
+    def ok_physics(r: dict) -> bool:
         return ok_inertia(r) and r["friction_err_%"] <= 5.0
 
     def fit_at_least(r: dict, level: float) -> bool:
         return r["status"] != DIVERGED and min(r["fit_q"], r["fit_qdot"]) >= level
 
-    n = len(rows)
+    n = len(runs)
     worst = sorted(
         min(r["fit_q"], r["fit_qdot"])
-        for r in rows
+        for r in runs
         if r["status"] != DIVERGED and r["fit_q"] == r["fit_q"]
     )
-    best = rows[ens.best]
     return {
         "model": kind,
-        "init": init,
+        "group": label,
         "runs": n,
-        "inertia_1%": sum(ok_inertia(r) for r in rows) / n,
-        "physics": sum(ok_physics(r) for r in rows) / n,
-        "physics_and_fit_85": sum(ok_physics(r) and fit_at_least(r, 85.0) for r in rows) / n,
-        "fit_95": sum(fit_at_least(r, 95.0) for r in rows) / n,
-        "inertia_1%_and_fit_95": sum(ok_inertia(r) and fit_at_least(r, 95.0) for r in rows) / n,
-        "fit_85": sum(fit_at_least(r, 85.0) for r in rows) / n,
-        "inertia_1%_and_fit_85": sum(ok_inertia(r) and fit_at_least(r, 85.0) for r in rows) / n,
-        "diverged": sum(r["status"] == DIVERGED for r in rows),
-        # identified, but so stiff that simulating it needs > max_substeps RK4 steps per sample
-        "too_stiff": sum(r["status"] != DIVERGED and r["fit_q"] != r["fit_q"] for r in rows),
-        "min_fit_min": worst[0] if worst else float("nan"),
-        "min_fit_median": statistics.median(worst) if worst else float("nan"),
-        "min_fit_max": worst[-1] if worst else float("nan"),
-        "kept": best,
+        "distinct": distinct,
+        "inertia_1%": sum(map(ok_inertia, runs)) / n,
+        "physics": sum(map(ok_physics, runs)) / n,
+        "physics_and_fit_85": sum(ok_physics(r) and fit_at_least(r, 85.0) for r in runs) / n,
+        "fit_95": sum(fit_at_least(r, 95.0) for r in runs) / n,
+        "inertia_1%_and_fit_95": sum(ok_inertia(r) and fit_at_least(r, 95.0) for r in runs) / n,
+        "fit_85": sum(fit_at_least(r, 85.0) for r in runs) / n,
+        "diverged": sum(r["status"] == DIVERGED for r in runs),
+        "too_stiff": sum(r["status"] != DIVERGED and r["fit_q"] != r["fit_q"] for r in runs),
+        "min_fit": [worst[0], statistics.median(worst), worst[-1]] if worst else [math.nan] * 3,
+        "worst_inertia_%": max(abs(r["inertia_err_%"]) for r in runs),
+        "worst_friction_%": max(r["friction_err_%"] for r in runs),
         "seconds": seconds,
-        "filter_steps_per_s": ens.filter_steps / seconds,
-        "members": rows,
     }
+
+
+def study(kind: str, args: argparse.Namespace) -> tuple[list[dict], dict]:
+    cfg = Config.load(
+        ROOT / "experiments" / "configs" / f"arm_{kind}_ekf.toml",
+        [f"estimator.passes={args.passes}", "estimator.ensemble=0", "data.test=[]"],
+    )
+    train, val, _, _ = load_data(cfg)
+    base = config_model(cfg, train)
+    g = torch.Generator().manual_seed(args.seed)
+    guesses = random_thetas(base, base.get_theta(), args.starts, 3.0, g)
+    tunings = [(q, r) for q in SCALES for r in SCALES]
+    groups, raw = [], {}
+
+    if "config" in args.inits:
+        t0 = time.perf_counter()
+        rows = filter_runs(
+            kind, cfg, base, train, val,
+            guesses.repeat_interleave(len(tunings), 0),
+            [q for _ in guesses for q, _ in tunings],
+            [r for _ in guesses for _, r in tunings],
+            args,
+        )  # fmt: skip
+        groups.append(summarise("config", kind, rows, len(rows), time.perf_counter() - t0))
+        raw["config"] = rows
+
+    if "prefit" in args.inits:
+        t0 = time.perf_counter()
+        starts = torch.stack(
+            [prefit(base.set_theta(th), train).model.get_theta().detach() for th in guesses]
+        )
+        spread = float((starts - starts[0]).abs().max())
+        prefit_s = (time.perf_counter() - t0) / len(guesses)
+        distinct = [starts[0]]
+        for th in starts[1:]:
+            if not any(bool((th == d).all()) for d in distinct):
+                distinct.append(th)
+        # Every distinct start under the 25 absolute tunings: the single filters are the 9 at
+        # ×/÷ 10, each ensemble selects among its 9 neighbours.
+        grid = [10.0**e for e in (-2, -1, 0, 1, 2)]
+        absolute = [(q, r) for q in grid for r in grid]
+        t0 = time.perf_counter()
+        rows = filter_runs(
+            kind, cfg, base, train, val,
+            torch.stack(distinct).repeat_interleave(len(absolute), 0),
+            [q for _ in distinct for q, _ in absolute],
+            [r for _ in distinct for _, r in absolute],
+            args,
+        )  # fmt: skip
+        seconds = time.perf_counter() - t0
+        by_start = [rows[i * len(absolute) : (i + 1) * len(absolute)] for i in range(len(distinct))]
+
+        def member(block: list[dict], q: float, r: float) -> dict:
+            return next(
+                m for m in block if math.isclose(m["q_scale"], q) and math.isclose(m["r_scale"], r)
+            )
+
+        single, ens_val, ens_train = [], [], []
+        for th in starts:
+            block = by_start[next(i for i, d in enumerate(distinct) if bool((th == d).all()))]
+            for q, r in tunings:
+                single.append(member(block, q, r))
+                mine = [member(block, q * a, r * b) for a in SCALES for b in SCALES]
+                ens_val.append(select(mine, "score_validation"))
+                ens_train.append(select(mine, "score_train"))
+        for label, runs in (
+            ("prefit", single),
+            ("prefit + ensemble", ens_val),
+            ("prefit + ensemble, no validation data", ens_train),
+        ):
+            s = summarise(label, kind, runs, len(distinct) * 9, seconds)
+            s["prefit_start_spread"] = spread
+            s["prefit_seconds"] = prefit_s
+            groups.append(s)
+        raw["prefit_grid"] = rows
+
+    if args.stress:
+        start = prefit(base, train).model
+        g = torch.Generator().manual_seed(args.seed + 1)
+        thetas = random_thetas(start, start.get_theta(), args.starts, 3.0, g)
+        t0 = time.perf_counter()
+        rows = filter_runs(
+            kind, cfg, start, train, val,
+            thetas.repeat_interleave(len(tunings), 0),
+            [q for _ in thetas for q, _ in tunings],
+            [r for _ in thetas for _, r in tunings],
+            args,
+        )  # fmt: skip
+        groups.append(
+            summarise("prefit ×/÷ 3 (stress)", kind, rows, len(rows), time.perf_counter() - t0)
+        )
+        raw["stress"] = rows
+    return groups, raw
 
 
 def main() -> None:
@@ -146,6 +243,7 @@ def main() -> None:
     p.add_argument("--starts", type=int, default=20)
     p.add_argument("--passes", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--stress", action="store_true", help="also perturb the pre-fit ×/÷ 3")
     p.add_argument(
         "--max-substeps",
         type=int,
@@ -155,38 +253,44 @@ def main() -> None:
     p.add_argument("--json", type=pathlib.Path)
     args = p.parse_args()
     torch.set_num_threads(1)
-    results = []
+    results, raw = [], {}
     for kind in args.models:
-        for init in args.inits:
-            res = run_group(kind, init, args)
-            results.append(res)
-            print(f"done {kind}/{init}: {res['runs']} runs in {res['seconds']:.0f} s", flush=True)
-            if args.json:
-                args.json.write_text(json.dumps(results, indent=2))
+        groups, raw[kind] = study(kind, args)
+        results += groups
+        if args.json:
+            args.json.write_text(json.dumps({"groups": results, "runs": raw}, indent=2))
     print()
     print(
-        f"{args.starts} starts (×/÷ 3 box) × Q {{÷10, 1, ×10}} × R {{÷10, 1, ×10}}, "
-        f"{args.passes} passes, rig identification data; validation FIT of every run"
+        f"{args.starts} guesses (×/÷ 3 box around the config's) × Q {{÷10, 1, ×10}} × "
+        f"R {{÷10, 1, ×10}}, {args.passes} passes, rig identification data; every run's "
+        "validation FIT"
     )
     head = (
-        "| model | init | runs | inertia ≤ 1 % | inertia ≤ 1 % and friction curve ≤ 5 % | "
-        "... and FIT ≥ 85 % | FIT ≥ 95 % (q and q̇) | both | FIT ≥ 85 % | "
-        "inertia ≤ 1 % and FIT ≥ 85 % | diverged / too stiff | min(FIT q, q̇): min / median / max | "
-        "kept member: inertia, FIT q / q̇ | time | filter-steps/s |"
+        "| model | init | runs (distinct) | inertia ≤ 1 % | physics (inertia ≤ 1 %, curve ≤ 5 %) | "
+        "physics and FIT ≥ 85 % | FIT ≥ 95 % (q and q̇) | inertia ≤ 1 % and FIT ≥ 95 % | "
+        "FIT ≥ 85 % | diverged / too stiff | worst inertia / curve error | "
+        "min(FIT q, q̇): min / median / max | time |"
     )
     print(head)
     print("|" + "---|" * (head.count("|") - 1))
     for r in results:
-        k = r["kept"]
+        lo, mid, hi = r["min_fit"]
         print(
-            f"| {r['model']} | {r['init']} | {r['runs']} | {100 * r['inertia_1%']:.0f} % | "
-            f"{100 * r['physics']:.0f} % | {100 * r['physics_and_fit_85']:.0f} % | "
-            f"{100 * r['fit_95']:.0f} % | {100 * r['inertia_1%_and_fit_95']:.0f} % | "
-            f"{100 * r['fit_85']:.0f} % | {100 * r['inertia_1%_and_fit_85']:.0f} % | "
-            f"{r['diverged']} / {r['too_stiff']} | {r['min_fit_min']:.1f} / {r['min_fit_median']:.1f} / "
-            f"{r['min_fit_max']:.1f} % | {k['inertia_err_%']:+.2f} %, {k['fit_q']:.1f} / "
-            f"{k['fit_qdot']:.1f} % | {r['seconds']:.0f} s | {r['filter_steps_per_s']:,.0f} |"
+            f"| {r['model']} | {r['group']} | {r['runs']} ({r['distinct']}) | "
+            f"{100 * r['inertia_1%']:.0f} % | {100 * r['physics']:.0f} % | "
+            f"{100 * r['physics_and_fit_85']:.0f} % | {100 * r['fit_95']:.0f} % | "
+            f"{100 * r['inertia_1%_and_fit_95']:.0f} % | {100 * r['fit_85']:.0f} % | "
+            f"{r['diverged']} / {r['too_stiff']} | {r['worst_inertia_%']:.2f} / "
+            f"{r['worst_friction_%']:.1f} % | {lo:.1f} / {mid:.1f} / {hi:.1f} % | "
+            f"{r['seconds']:.0f} s |"
         )
+    for r in results:
+        if "prefit_start_spread" in r and r["group"] == "prefit":
+            print(
+                f"{r['model']}: the pre-fit from each of the {args.starts} guesses took "
+                f"{r['prefit_seconds']:.2f} s; largest difference between their starts: "
+                f"{r['prefit_start_spread']:.1e} (estimation coordinates)"
+            )
 
 
 if __name__ == "__main__":
