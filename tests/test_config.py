@@ -347,3 +347,18 @@ def test_missing_files_are_errors(tmp_path: pathlib.Path, monkeypatch: pytest.Mo
     # check_files=False (e.g. reading the config stored in a checkpoint on another machine)
     c = Config.loads('[data]\ntrain = "b.csv"', check_files=False)
     assert c.data.train == (str(tmp_path / "b.csv"),)
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted((pathlib.Path(__file__).resolve().parents[1] / "experiments" / "configs").glob("*.toml")),
+    ids=lambda p: p.stem,
+)
+def test_every_shipped_config_loads(path: pathlib.Path) -> None:
+    """The configs in experiments/configs validate (the real-data ones name their files, which
+    are only checked when loaded). The paper's reference EKF configs run its single filter."""
+    cfg = Config.load(path)
+    if path.stem.endswith("_ekf") and not path.stem.startswith("arm_defaults"):
+        assert cfg.estimator.ensemble == 0, "reference EKF configs pin the paper's single filter"
+    if path.stem == "arm_defaults":
+        assert cfg.estimator == EstimatorConfig()
