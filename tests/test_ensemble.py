@@ -246,26 +246,32 @@ def test_selection_by_validation_fit_matches_score_simulation() -> None:
     assert ens.best == max(range(4), key=lambda j: ens.members[j].score)
 
 
-def test_simulate_members_equals_one_by_one() -> None:
+@pytest.mark.parametrize("engine", ["odeint", "compiled"])
+def test_simulate_members_equals_one_by_one(engine: str) -> None:
     true = _true()
     exp = _data(true, n=1500)
     g = torch.Generator().manual_seed(7)
     thetas = random_thetas(true, true.get_theta(), 3, 2.0, g)
-    sims = simulate_members(true, thetas, exp)
+    steep = thetas[0].clone()
+    steep[true.theta_names.index("W1[3]")] *= 20.0  # needs more RK4 sub-steps than the rest
+    thetas = torch.cat([thetas, steep[None]])
+    need = {auto_substeps(true, exp.dt, theta=th) for th in thetas}
+    assert len(need) > 1
+    sims = simulate_members(true, thetas, exp, engine=engine)
     x0 = torch.stack([exp.q[0], exp.qdot[0]])
-    for j in range(3):
+    for j in range(4):
         model = ArmModel.from_spec(true.spec()).set_theta(thetas[j])
         with torch.no_grad():
-            ref = simulate(model, exp.t, exp.u, x0)  # its own "auto" sub-steps
+            ref = simulate(model, exp.t, exp.u, x0)  # odeint, its own "auto" sub-steps
         torch.testing.assert_close(sims[:, j], ref, rtol=0, atol=1e-12)
-    assert sims.shape == (1500, 3, 2)
+    assert sims.shape == (1500, 4, 2)
     assert float(sims[:, :, 1].abs().max()) > 1.0  # the arm actually moves
     # A member stiffer than the cap is not simulated (NaN rows), the others are unaffected.
     stiff = thetas.clone()
     stiff[1, true.theta_names.index("inertia")] += math.log(1e-3)
     need = auto_substeps(true, exp.dt, theta=stiff[1])
     assert need > 4
-    capped = simulate_members(true, stiff, exp, max_substeps=need - 1)
+    capped = simulate_members(true, stiff, exp, max_substeps=need - 1, engine=engine)
     assert bool(capped[:, 1].isnan().all())
     torch.testing.assert_close(capped[:, [0, 2]], sims[:, [0, 2]], rtol=0, atol=0)
 

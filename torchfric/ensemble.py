@@ -247,13 +247,21 @@ def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # t
 
 @torch.no_grad()
 def simulate_members(
-    model: ArmModel, thetas: Tensor, exp: Experiment, *, max_substeps: int = 64
+    model: ArmModel,
+    thetas: Tensor,
+    exp: Experiment,
+    *,
+    max_substeps: int = 64,
+    engine: str = "odeint",
 ) -> Tensor:
     """Open-loop simulations `(N, K, 2)` of `exp` from its measured initial state for K θ's.
 
-    Members are batched by the RK4 sub-step count each one needs (`auto_substeps`), so one stiff
-    member does not make every other member's simulation slow. A member that would need more
-    than `max_substeps` is not simulated: its rows are NaN (scored as a failed run).
+    Each member is simulated with the RK4 sub-step count it needs (`auto_substeps`), so one
+    stiff member does not make every other member's simulation slow. A member that would need
+    more than `max_substeps` is not simulated: its rows are NaN (scored as a failed run).
+    `engine` as in `simulate`: with "compiled" every sub-step count runs the whole batch of K
+    (one compiled shape, so one compile per model structure) and keeps its own members' rows;
+    odeint batches only the members that share a count. Same arithmetic either way.
     """
     if exp.qdot is None:
         raise TorchfricError(f"experiment {exp.name!r} has no velocity to score against")
@@ -269,11 +277,13 @@ def simulate_members(
         if steps > max_substeps:
             continue
         idx = [j for j in range(K) if need[j] == steps]
-        B = len(idx)
-        out[:, idx] = simulate(
-            model, exp.t, u[:, None].expand(-1, B), x0.expand(B, 2), theta=thetas[idx],
-            substeps=steps,
+        run = list(range(K)) if engine == "compiled" else idx
+        B = len(run)
+        sim = simulate(
+            model, exp.t, u[:, None].expand(-1, B), x0.expand(B, 2), theta=thetas[run],
+            substeps=steps, engine=engine,
         )  # fmt: skip
+        out[:, idx] = sim[:, [run.index(j) for j in idx]]
     return out
 
 
@@ -572,10 +582,13 @@ def identify_ekf_ensemble(
     scores = torch.full((K,), -math.inf, dtype=f64)
     fits: list[dict[str, dict[str, float]]] = [{} for _ in range(K)]
     scored = list(validation) or exps
+    engine = "compiled" if tuning.compile else "odeint"
     idx = torch.tensor(alive)
     total_fit = torch.zeros(len(alive), dtype=f64)
     for v in scored:
-        sim = simulate_members(model, theta[idx], v, max_substeps=max_substeps)
+        sim = simulate_members(
+            model, theta[idx], v, max_substeps=max_substeps, engine=engine
+        )
         fq = _fit(v.q.to(f64), sim[..., 0])
         fv = _fit(v.qdot.to(f64), sim[..., 1]) if v.qdot is not None else fq
         total_fit += 0.5 * (fq + fv)
