@@ -323,6 +323,16 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     assert metrics["ensemble"]["best"] == best
     fit = metrics["validation"]["validation"]
     assert 0.5 * (fit["fit_q"] + fit["fit_qdot"]) == pytest.approx(scores[best], abs=1e-6)
+    # TensorBoard: the kept member's filter diagnostics per pass under the single filter's tags.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"ekf/trace_P", "ekf/nis", "ekf/innovation_rms/0", "parameters/inertia"} <= tags
+    assert [e.step for e in acc.Scalars("ekf/loglik")] == [1, 2]
+    kept = report["members"][best]
+    assert acc.Scalars("ekf/loglik")[-1].value == pytest.approx(kept["loglik"], rel=1e-6)
     ckpt = read_checkpoint(tmp_path / "checkpoints" / "ens.pt")
     snap2 = read_checkpoint(run / "passes" / "ensemble_002.pt")
     torch.testing.assert_close(ckpt["theta"], snap2["estimator"]["state"]["thetas"][best])

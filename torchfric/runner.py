@@ -282,16 +282,7 @@ class _RunLogger(EKFCallback):
         save_checkpoint(path, payload)
 
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
-        scalars = {
-            "ekf/trace_P": record.trace_P,
-            "ekf/trace_P_theta": record.trace_P_theta,
-            "ekf/nis": record.nis,
-            "ekf/loglik": record.loglik,
-            "ekf/rel_change": record.rel_change,
-        }
-        for i, v in enumerate(record.innovation_rms):
-            scalars[f"ekf/innovation_rms/{i}"] = v
-        fits = self.log_model(record.index, result.model, scalars)
+        fits = self.log_model(record.index, result.model, ekf_scalars(record))
         self.last_fit = fits
         fit_txt = ", ".join(
             f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
@@ -389,6 +380,20 @@ def _run_ekf(
     return result.model, _estimator_payload(result, result.passes), extra
 
 
+def ekf_scalars(record: PassRecord) -> dict[str, float]:
+    """A pass's filter diagnostics as TensorBoard scalars (`ekf/...`)."""
+    scalars = {
+        "ekf/trace_P": record.trace_P,
+        "ekf/trace_P_theta": record.trace_P_theta,
+        "ekf/nis": record.nis,
+        "ekf/loglik": record.loglik,
+        "ekf/rel_change": record.rel_change,
+    }
+    for i, v in enumerate(record.innovation_rms):
+        scalars[f"ekf/innovation_rms/{i}"] = v
+    return scalars
+
+
 class _EnsembleLogger(EnsembleCallback):
     """Ensemble passes: progress, spread scalars in TensorBoard, resumable snapshots."""
 
@@ -472,7 +477,19 @@ def _run_ensemble(
         f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
     )
     result = ens.result
-    logger.last_fit = logger.log_model(max(result.passes, 1), result.model, {})
+    # The kept member's own pass history under the single filter's tags (parameters, trace(P),
+    # innovation RMS, NIS, log-likelihood per pass), so that a default run's TensorBoard reads
+    # like a single filter's; the members' spread is under ensemble/.
+    for record in result.history[:-1]:
+        for key, value in {
+            **{f"parameters/{n}": v for n, v in record.parameters.items()},
+            **ekf_scalars(record),
+        }.items():
+            logger.writer.add_scalar(key, value, record.index)
+    last = result.history[-1] if result.history else None
+    logger.last_fit = logger.log_model(
+        max(result.passes, 1), result.model, ekf_scalars(last) if last else {}
+    )
     extra = {
         "passes": result.passes,
         "converged": result.converged,
