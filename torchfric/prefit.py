@@ -8,8 +8,8 @@ reference identification (IDIM-LS). Steps:
    plus the enabled offset/gravity/asymmetric terms gives the scales of inertia and friction.
 2. The friction module is initialised from those scales (velocity scale: the 95th percentile
    of ``|q̇|``; torque scale: ``F_c``), then all of θ is refined by Levenberg–Marquardt on the
-   equation error, with the Jacobian from `torch.func.jacfwd` (θ in estimation coordinates, so
-   positive parameters stay positive). Several friction starts are tried; the best is kept.
+   equation error, with the Jacobian from autograd (`torch.func.vmap` of `torch.func.grad`
+   over the samples; θ in estimation coordinates, so positive parameters stay positive). Several friction starts are tried; the best is kept.
 
 Stick phases (``|q̇|`` below a threshold) are left out: there the friction is a pre-sliding
 force, not a function of velocity, and the filtered acceleration is dominated by quantisation.
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-from torch.func import jacfwd
+from torch.func import grad, vmap
 
 from .arm import ArmModel
 from .data import Experiment, zero_phase_acceleration, zero_phase_derivative
@@ -216,13 +216,22 @@ def _levenberg_marquardt(
         _, arm = model.split(theta)
         return (model.vector_field(x, u, theta)[:, 1] - a) * arm["inertia"]
 
+    def sample_residual(theta: Tensor, x1: Tensor, u1: Tensor, a1: Tensor) -> Tensor:
+        _, arm = model.split(theta)
+        return (model.vector_field(x1, u1, theta)[1] - a1) * arm["inertia"]
+
+    # J's rows are per-sample gradients: one batched reverse pass over the samples
+    # (`vmap(grad)`) gives the same Jacobian as `jacfwd` (to rounding) 3–4× faster here, where
+    # forward mode through the friction falls back to Python decompositions.
+    jacobian = vmap(grad(sample_residual), in_dims=(None, 0, 0, 0))
+
     theta = torch.maximum(torch.minimum(model.get_theta(), hi), lo)
     r = residual(theta)
     cost = float(r @ r)
     lam = 1e-3
     it = 0
     for it in range(1, iterations + 1):  # noqa: B007 (returned: iterations used)
-        J = jacfwd(residual)(theta)
+        J = jacobian(theta, x, u, a)
         JtJ = J.T @ J
         g = J.T @ r
         improved = False
