@@ -45,7 +45,13 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.config import Config
-from torchfric.ensemble import DIVERGED, _fit, identify_ekf_ensemble, random_thetas, simulate_members
+from torchfric.ensemble import (
+    DIVERGED,
+    _fit,
+    identify_ekf_ensemble,
+    random_thetas,
+    simulate_members,
+)
 from torchfric.metrics import friction_curve_error
 from torchfric.prefit import prefit
 from torchfric.rig import RigParameters

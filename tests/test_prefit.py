@@ -62,3 +62,78 @@ def test_prefit_rejects_too_short_data() -> None:
     exp = make_experiment(t, torch.zeros(100), torch.sin(t))
     with pytest.raises(TorchfricError, match="too few"):
         prefit(ArmModel(make_friction("tanh", 3), c_m=16.0), exp)
+
+
+def _lm_one_start(model, theta0, q, v, a, u, iterations, v_stick, rows):  # type: ignore[no-untyped-def]
+    """Textbook Levenberg–Marquardt for one start, written independently of the batched one:
+    Jacobian from `rows` (per-sample reverse mode) or forward mode, damping λ·diag(JᵀJ), λ ÷ 3
+    on success, × 4 on failure (up to 10 tries), stop when no try improves or the relative
+    improvement is below 1e-8."""
+    import math
+
+    from torch.func import grad, jacfwd, vmap
+
+    from torchfric.prefit import _slope_bounds
+
+    lo, hi = _slope_bounds(model, v_stick)
+    x = torch.stack([q, v], dim=-1)
+
+    def residual(theta):  # type: ignore[no-untyped-def]
+        _, arm = model.split(theta)
+        return (model.vector_field(x, u, theta)[:, 1] - a) * arm["inertia"]
+
+    def one(theta, x1, u1, a1):  # type: ignore[no-untyped-def]
+        _, arm = model.split(theta)
+        return (model.vector_field(x1, u1, theta)[1] - a1) * arm["inertia"]
+
+    def jac(theta):  # type: ignore[no-untyped-def]
+        if rows:
+            return vmap(grad(one), in_dims=(None, 0, 0, 0))(theta, x, u, a)
+        return jacfwd(residual)(theta)
+
+    theta = torch.maximum(torch.minimum(theta0, hi), lo)
+    r = residual(theta)
+    cost, lam, used = float(r @ r), 1e-3, 0
+    for it in range(1, iterations + 1):
+        used = it
+        J = jac(theta)
+        JtJ, g = J.T @ J, J.T @ r
+        improved, rel = False, 0.0
+        for _ in range(10):
+            step = torch.linalg.solve(JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12)), -g)
+            cand = torch.maximum(torch.minimum(theta + step, hi), lo)
+            r_new = residual(cand)
+            c_new = float(r_new @ r_new)
+            if math.isfinite(c_new) and c_new < cost:
+                rel = (cost - c_new) / max(cost, 1e-300)
+                theta, r, cost, lam, improved = cand, r_new, c_new, max(lam / 3.0, 1e-9), True
+                break
+            lam *= 4.0
+        if not improved or rel < 1e-8:
+            break
+    return theta, cost, used, J
+
+
+@pytest.mark.parametrize("kind", ["tanh", "polytopic"])
+def test_batched_levenberg_marquardt_equals_one_start_at_a_time(identification, kind: str) -> None:
+    """All friction starts in one batch give each start's own LM result (the pre-fit's speed-up
+    must not couple the starts), and the per-sample Jacobian equals forward mode's."""
+    from torchfric.prefit import _levenberg_marquardt, _linear_skeleton, _regression_data, _starts
+
+    arm = ArmModel(make_friction(kind, 3), c_m=16.0)
+    q, v, a, u = _regression_data([identification], 50.0, 0.02)
+    v_stick = 0.02 * float(v.abs().max())
+    starts = _starts(arm, _linear_skeleton(arm, q, v, a, u), float(torch.quantile(v.abs(), 0.95)))
+    thetas = torch.stack([s.get_theta().detach() for s in starts])
+    _, _, _, J_rows = _lm_one_start(starts[0], thetas[0], q, v, a, u, 1, v_stick, rows=True)
+    _, _, _, J_fwd = _lm_one_start(starts[0], thetas[0], q, v, a, u, 1, v_stick, rows=False)
+    torch.testing.assert_close(J_rows, J_fwd, rtol=1e-10, atol=1e-12 * float(J_fwd.abs().max()))
+    iterations = 12
+    got, costs, used = _levenberg_marquardt(starts[0], thetas, q, v, a, u, iterations, v_stick)
+    # The LM trajectory amplifies rounding where JᵀJ is ill-conditioned (polytopic: a 1e-3
+    # difference after 12 iterations from J's 1e-13), so the reference uses the same rows.
+    for j, start in enumerate(starts):
+        theta, cost, its, _ = _lm_one_start(start, thetas[j], q, v, a, u, iterations, v_stick, True)
+        torch.testing.assert_close(got[j], theta, rtol=1e-7, atol=1e-9)
+        assert float(costs[j]) == pytest.approx(cost, rel=1e-9)
+        assert int(used[j]) == its
