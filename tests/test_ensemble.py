@@ -363,3 +363,17 @@ def test_the_default_config_runs_one_start_under_nine_tunings() -> None:
     assert Config.loads('[estimator]\nmethod = "output_error"').estimator.method == "output_error"
     with pytest.raises(TorchfricError, match="estimator.ensemble_r_scales .* needs estimator.method"):
         Config.loads('[estimator]\nmethod = "output_error"\nensemble_r_scales = [1.0]')
+
+
+def test_without_velocity_or_validation_the_likelihood_chooses() -> None:
+    """Training files without q̇ (measure = "position") cannot be simulated from their measured
+    state: the ensemble keeps the best log-likelihood instead of failing after its passes."""
+    true = _true()
+    exp = _data(true, n=300)
+    exp = make_experiment(exp.t, exp.u, exp.q, name="no velocity")
+    assert exp.qdot is None
+    spec = EnsembleSpec(members=2, spread=1.5, r_scales=(1.0, 10.0), seed=1)
+    tuning = EKFTuning(passes=1, measure="position", r=(1e-3,))
+    ens = identify_ekf_ensemble(true, exp, tuning, spec)
+    assert ens.selected_by == "loglik"
+    assert ens.best == max(range(4), key=lambda j: ens.members[j].loglik)

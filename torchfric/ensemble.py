@@ -581,7 +581,9 @@ def identify_ekf_ensemble(
     # curve (benchmarks/robustness.py). The likelihood only decides when no member simulates.
     scores = torch.full((K,), -math.inf, dtype=f64)
     fits: list[dict[str, dict[str, float]]] = [{} for _ in range(K)]
-    scored = list(validation) or exps
+    # (training files without a velocity, e.g. measure = "position", cannot be scored: they
+    # leave the choice to the likelihood)
+    scored = list(validation) or [e for e in exps if e.qdot is not None]
     engine = "compiled" if tuning.compile else "odeint"
     idx = torch.tensor(alive)
     total_fit = torch.zeros(len(alive), dtype=f64)
@@ -589,13 +591,12 @@ def identify_ekf_ensemble(
         sim = simulate_members(
             model, theta[idx], v, max_substeps=max_substeps, engine=engine
         )
-        fq = _fit(v.q.to(f64), sim[..., 0])
-        fv = _fit(v.qdot.to(f64), sim[..., 1]) if v.qdot is not None else fq
+        fq, fv = _fit(v.q.to(f64), sim[..., 0]), _fit(v.qdot.to(f64), sim[..., 1])
         total_fit += 0.5 * (fq + fv)
         for a, i in enumerate(alive):
             fits[i][v.name] = {"fit_q": float(fq[a]), "fit_qdot": float(fv[a])}
-    total_fit = torch.nan_to_num(total_fit / len(scored), nan=-math.inf)
-    scores[idx] = total_fit
+    if scored:
+        scores[idx] = torch.nan_to_num(total_fit / len(scored), nan=-math.inf)
     selected_by = "validation_fit" if validation else "train_fit"
     if not bool(torch.isfinite(scores).any()):
         for i in alive:
