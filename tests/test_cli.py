@@ -121,6 +121,21 @@ def test_resume_after_interruption_equals_uninterrupted(
     assert resumed["estimator"]["state"]["pass"] == 2
 
 
+def test_resume_refuses_a_changed_config(
+    trained: dict[str, pathlib.Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """E.g. a single filter's run resumed where the config now asks for an ensemble (as a run
+    made before the default ensemble, resumed with a config that leaves the key out): one line,
+    nothing touched."""
+    run = trained["run"]
+    before = {p.name: p.read_bytes() for p in (run / "passes").iterdir()}
+    args = ["train", str(trained["cfg"]), "--quiet", *SHORT, "--set", "estimator.ensemble=1"]
+    assert main([*args, "--resume", str(run)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --resume: the config differs") and "\n" not in err
+    assert {p.name: p.read_bytes() for p in (run / "passes").iterdir()} == before
+
+
 def test_evaluate_simulate_and_export_agree(
     trained: dict[str, pathlib.Path], tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
