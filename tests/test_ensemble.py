@@ -231,18 +231,24 @@ def test_all_members_diverging_is_one_clear_error() -> None:
 
 
 @pytest.mark.slow
-def test_selection_by_validation_fit_matches_score_simulation() -> None:
+def test_selection_by_validation_and_training_fit_matches_score_simulation() -> None:
+    """The score is the validation files' mean FIT and the training files' mean FIT, weighted
+    equally (each file's FIT the mean of q and q̇), each simulated independently here."""
     true = _true()
-    train, val = _data(true, n=400), _data(true, n=600, seed=5, name="val")
+    train = [_data(true, n=400), _data(true, n=500, seed=3, name="train2")]
+    val = _data(true, n=600, seed=5, name="val")
     spec = EnsembleSpec(members=4, spread=2.0, seed=0)
     ens = identify_ekf_ensemble(true, train, EKFTuning(passes=1), spec, validation=[val])
-    assert ens.selected_by == "validation_fit"
+    assert ens.selected_by == "validation_and_train_fit"
     for m in ens.members:
         model = ArmModel.from_spec(true.spec()).set_theta(ens.thetas[m.index])
         ref = score_simulation(model, val)
         assert math.isclose(m.fits["val"]["fit_q"], ref.fit_q, abs_tol=1e-6)
         assert math.isclose(m.fits["val"]["fit_qdot"], ref.fit_qdot, abs_tol=1e-6)
-        assert math.isclose(m.score, 0.5 * (ref.fit_q + ref.fit_qdot), abs_tol=1e-6)
+        on_train = [score_simulation(model, e) for e in train]
+        train_fit = sum(0.5 * (r.fit_q + r.fit_qdot) for r in on_train) / 2
+        expected = 0.5 * (0.5 * (ref.fit_q + ref.fit_qdot) + train_fit)
+        assert math.isclose(m.score, expected, abs_tol=1e-6)
     assert ens.best == max(range(4), key=lambda j: ens.members[j].score)
 
 
@@ -322,7 +328,9 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["ensemble"]["best"] == best
     fit = metrics["validation"]["validation"]
-    assert 0.5 * (fit["fit_q"] + fit["fit_qdot"]) == pytest.approx(scores[best], abs=1e-6)
+    train_fit = report["members"][best]["fits"]["identification"]
+    expected = 0.25 * (fit["fit_q"] + fit["fit_qdot"] + train_fit["fit_q"] + train_fit["fit_qdot"])
+    assert expected == pytest.approx(scores[best], abs=1e-6)
     # TensorBoard: the kept member's filter diagnostics per pass under the single filter's tags.
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
