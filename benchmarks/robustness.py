@@ -47,13 +47,7 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.config import Config
-from torchfric.ensemble import (
-    DIVERGED,
-    _fit,
-    identify_ekf_ensemble,
-    random_thetas,
-    simulate_members,
-)
+from torchfric.ensemble import DIVERGED, identify_ekf_ensemble, random_thetas
 from torchfric.metrics import friction_curve_error
 from torchfric.prefit import prefit
 from torchfric.rig import RigParameters
@@ -76,20 +70,17 @@ def filter_runs(kind, cfg, model, train, val, thetas, qs, rs, args) -> list[dict
     )
     truth = RigParameters().inertia
     v, ref = friction_reference(train)
-    # The training-data FIT, for the selection an ensemble makes without validation data.
-    train_score = torch.zeros(len(ens.members), dtype=F64)
-    for e in train:
-        sim = simulate_members(model, ens.thetas, e, max_substeps=args.max_substeps)
-        fq, fv = _fit(e.q.to(F64), sim[..., 0]), _fit(e.qdot.to(F64), sim[..., 1])
-        train_score += 0.5 * (fq + fv) / len(train)
     rows = []
     for m in ens.members:
+        # The ensemble scored every member on the validation and the training files.
         nan = {"fit_q": math.nan, "fit_qdot": math.nan}
+
+        def mean_fit(exps, m=m, nan=nan) -> float:  # type: ignore[no-untyped-def]
+            s = sum(0.5 * (m.fits.get(e.name, nan)["fit_q"] + m.fits.get(e.name, nan)["fit_qdot"])
+                    for e in exps) / len(exps)  # fmt: skip
+            return s if s == s else -math.inf
+
         fit = m.fits.get(val[0].name, nan)
-        score_val = sum(
-            0.5 * (m.fits.get(e.name, nan)["fit_q"] + m.fits.get(e.name, nan)["fit_qdot"])
-            for e in val
-        ) / len(val)
         with torch.no_grad():
             fric = float(100 * friction_curve_error(model.set_theta(ens.thetas[m.index]), v, ref))
         rows.append(
@@ -103,8 +94,8 @@ def filter_runs(kind, cfg, model, train, val, thetas, qs, rs, args) -> list[dict
                 "fit_q": fit["fit_q"],
                 "fit_qdot": fit["fit_qdot"],
                 "score_default": m.score,  # what identify_ekf_ensemble selects by
-                "score_validation": score_val if score_val == score_val else -math.inf,
-                "score_train": float(train_score[m.index]),
+                "score_validation": mean_fit(val),
+                "score_train": mean_fit(train),
             }
         )
     print(f"  {kind}: {len(rows)} filters in {ens.seconds:.0f} s", flush=True)

@@ -414,8 +414,8 @@ class EstimatorConfig:
             best open-loop FIT is kept (on the validation data, else on the training data) —
             see `torchfric.ensemble.EnsembleSpec`. The default, 1 start × Q {÷10, 1, ×10} ×
             R {÷10, 1, ×10}, is 9 filters, so that a tuning off by up to ×/÷ 10 still ends at
-            the physical model (measured on the rig, `benchmarks/robustness.py`: tanh(3) 180 of
-            180 runs, polytopic(3) 89 %). Output-error runs ignore the default;
+            the physical model (measured on the rig, `benchmarks/robustness.py`: 180 of 180 runs
+            for tanh(3) and for polytopic(3)). Output-error runs ignore the default;
             changing any ensemble key with method = "output_error" is an error.
     """
 

@@ -581,7 +581,7 @@ def identify_ekf_ensemble(
     # the validation files and the mean FIT on the training files, weighted equally (training
     # files alone when there is no validation). The EKF never fits open-loop simulations, so
     # the training files are a second check, not a fitted score; on the rig, validation alone
-    # kept a polytopic member 2.97 % off in inertia for one user tuning in nine, both kept a
+    # kept a polytopic member 3 % off in inertia for one user tuning in nine, both kept a
     # physical member for all nine (benchmarks/robustness.py, which shows each rule).
     # Not by the innovation likelihood: members differ in R and Q, and the likelihood prefers the
     # smallest R that the data allow, which on the rig is the member with the worst friction
