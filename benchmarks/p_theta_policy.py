@@ -69,7 +69,9 @@ def run(kind: str, policy: str, scaling: str, passes: int, cache: dict) -> dict:
     if kind not in cache:
         train, val, _, _ = load_data(cfg)
         model, _ = initial_model(cfg, train)
-        step = make_step(make_propagator(model, 1), compile=True)  # one compile per model
+        # One compiled step per model, reused by every policy: `identify_ekf` (which has no
+        # hook between passes for P_θθ) would build and compile a new step on every call.
+        step = make_step(make_propagator(model, 1), compile=True)
         cache[kind] = (train, val, model, step, model.get_theta().detach().clone())
     train, val, model, step, theta0 = cache[kind]  # (model is re-set below: θ0 = the pre-fit)
     tuning = cfg.estimator.ekf_tuning()

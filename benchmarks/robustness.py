@@ -58,8 +58,9 @@ SCALES = (0.1, 1.0, 10.0)
 F64 = torch.float64
 
 
-def filter_runs(kind, cfg, model, train, val, thetas, qs, rs, args) -> list[dict]:  # type: ignore[no-untyped-def]
-    """Run the K filters (θ start, Q scale, R scale) as one ensemble; one row of results each."""
+def filter_runs(kind, cfg, model, train, val, members, args) -> list[dict]:  # type: ignore[no-untyped-def]
+    """Run the K filters (θ starts, Q scales, R scales) as one ensemble; one row of results each."""
+    thetas, qs, rs = members
     ens = identify_ekf_ensemble(
         model,
         train,
@@ -100,6 +101,15 @@ def filter_runs(kind, cfg, model, train, val, thetas, qs, rs, args) -> list[dict
         )
     print(f"  {kind}: {len(rows)} filters in {ens.seconds:.0f} s", flush=True)
     return rows
+
+
+def crossed(starts: torch.Tensor, tunings: list[tuple[float, float]]):  # type: ignore[no-untyped-def]
+    """Every start under every (Q scale, R scale): the `members` of `identify_ekf_ensemble`."""
+    return (
+        starts.repeat_interleave(len(tunings), 0),
+        [q for _ in starts for q, _ in tunings],
+        [r for _ in starts for _, r in tunings],
+    )
 
 
 def select(members: list[dict], key: str) -> dict:
@@ -162,13 +172,7 @@ def study(kind: str, args: argparse.Namespace) -> tuple[list[dict], dict]:
 
     if "config" in args.inits:
         t0 = time.perf_counter()
-        rows = filter_runs(
-            kind, cfg, base, train, val,
-            guesses.repeat_interleave(len(tunings), 0),
-            [q for _ in guesses for q, _ in tunings],
-            [r for _ in guesses for _, r in tunings],
-            args,
-        )  # fmt: skip
+        rows = filter_runs(kind, cfg, base, train, val, crossed(guesses, tunings), args)
         groups.append(summarise("config", kind, rows, len(rows), time.perf_counter() - t0))
         raw["config"] = rows
 
@@ -189,12 +193,8 @@ def study(kind: str, args: argparse.Namespace) -> tuple[list[dict], dict]:
         absolute = [(q, r) for q in grid for r in grid]
         t0 = time.perf_counter()
         rows = filter_runs(
-            kind, cfg, base, train, val,
-            torch.stack(distinct).repeat_interleave(len(absolute), 0),
-            [q for _ in distinct for q, _ in absolute],
-            [r for _ in distinct for _, r in absolute],
-            args,
-        )  # fmt: skip
+            kind, cfg, base, train, val, crossed(torch.stack(distinct), absolute), args
+        )
         seconds = time.perf_counter() - t0
         by_start = [rows[i * len(absolute) : (i + 1) * len(absolute)] for i in range(len(distinct))]
 
@@ -229,13 +229,7 @@ def study(kind: str, args: argparse.Namespace) -> tuple[list[dict], dict]:
         g = torch.Generator().manual_seed(args.seed + 1)
         thetas = random_thetas(start, start.get_theta(), args.starts, 3.0, g)
         t0 = time.perf_counter()
-        rows = filter_runs(
-            kind, cfg, start, train, val,
-            thetas.repeat_interleave(len(tunings), 0),
-            [q for _ in thetas for q, _ in tunings],
-            [r for _ in thetas for _, r in tunings],
-            args,
-        )  # fmt: skip
+        rows = filter_runs(kind, cfg, start, train, val, crossed(thetas, tunings), args)
         groups.append(
             summarise("prefit ×/÷ 3 (stress)", kind, rows, len(rows), time.perf_counter() - t0)
         )
