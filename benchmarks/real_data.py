@@ -46,7 +46,7 @@ DATA = ROOT.parent / "shared" / "data"
 CONFIGS = ROOT / "experiments" / "configs"
 
 RUNS: dict[str, list[str]] = {
-    "emps": ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe", "emps_tanh_asym_oe"],
+    "emps": ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe", "emps_tanh_asym_oe", "emps_defaults"],
     "hsm150": ["hsm150_tanh_oe", "hsm150_tanh_asym_oe"],
     "disc": ["disc_tanh_ekf", "disc_tanh_oe"],
 }
