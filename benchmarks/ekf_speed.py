@@ -155,12 +155,14 @@ class NumpyEKF:
 def _baseline(model: ArmModel, exp, n: int, make):  # type: ignore[no-untyped-def]
     """(steps/s, max |difference| to torchfric's step over 50 samples) of a reference filter.
 
-    ``make(z0, P0, Q, H, R) -> step(u_prev, y) -> (z, P)`` builds it on numpy arrays."""
+    ``make(ekf, z0, P0, Q, H, R) -> step(u_prev, y) -> (z, P)`` builds it on numpy arrays
+    around `ekf`, the `NumpyEKF` of `model`."""
+    ekf = NumpyEKF(float(model.split(model.get_theta())[1]["c_m"]), model.friction.n)
     Q, H, R = tuning(model.num_parameters)
     st = initial(model, exp)
     u, y = exp.u.numpy(), np.stack([exp.q.numpy(), exp.qdot.numpy()], -1)
     args = (Q.numpy(), H.numpy(), R.numpy())
-    ref = make(st.x.numpy().copy(), st.P.numpy().copy(), *args)
+    ref = make(ekf, st.x.numpy().copy(), st.P.numpy().copy(), *args)
     step = make_step(make_propagator(model, 1))
     dt = torch.tensor(exp.dt, dtype=F64)
     xt, Pt = st.x, st.P
@@ -170,7 +172,7 @@ def _baseline(model: ArmModel, exp, n: int, make):  # type: ignore[no-untyped-de
         xt, Pt, *_ = step(xt, Pt, exp.u[j - 1].to(F64), torch.as_tensor(y[j]), dt, Q, H, R,
                           torch.tensor(1e6, dtype=F64))  # fmt: skip
         diff = max(diff, float(np.abs(z - xt.numpy()).max()), float(np.abs(P - Pt.numpy()).max()))
-    ref = make(st.x.numpy().copy(), st.P.numpy().copy(), *args)
+    ref = make(ekf, st.x.numpy().copy(), st.P.numpy().copy(), *args)
     t0 = time.perf_counter()
     for j in range(1, n):
         ref(u[j - 1], y[j])
@@ -179,9 +181,8 @@ def _baseline(model: ArmModel, exp, n: int, make):  # type: ignore[no-untyped-de
 
 def numpy_baseline(model: ArmModel, exp, n: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]
     """The numpy EKF above: (steps/s, max |difference| to torchfric over 50 samples)."""
-    ekf = NumpyEKF(float(model.split(model.get_theta())[1]["c_m"]), model.friction.n)
 
-    def make(z, P, Q, H, R):  # type: ignore[no-untyped-def]
+    def make(ekf, z, P, Q, H, R):  # type: ignore[no-untyped-def]
         state = [z, P]
 
         def step(u, y):  # type: ignore[no-untyped-def]
@@ -201,18 +202,17 @@ def filterpy_baseline(model: ArmModel, exp, n: int) -> tuple[float, float] | Non
         from filterpy.kalman import ExtendedKalmanFilter
     except ImportError:
         return None
-    ekf = NumpyEKF(float(model.split(model.get_theta())[1]["c_m"]), model.friction.n)
     dt = exp.dt
 
-    def make(z, P, Q, H, R):  # type: ignore[no-untyped-def]
-        class RK4EKF(ExtendedKalmanFilter):
-            def predict_x(self, u=0):  # type: ignore[no-untyped-def]
-                # filterpy then forms P⁻ = F P Fᵀ + Q with the F and Q set here
-                self.x, self.F = ekf.propagate(self.x, u, dt)
-                self.Q = 0.5 * (self.F @ Q @ self.F.T + Q) * dt
+    class RK4EKF(ExtendedKalmanFilter):
+        def predict_x(self, u=0):  # type: ignore[no-untyped-def]
+            # filterpy then forms P⁻ = F P Fᵀ + Q with the F and Q set here
+            self.x, self.F = self.ekf.propagate(self.x, u, dt)
+            self.Q = 0.5 * (self.F @ self.Qc @ self.F.T + self.Qc) * dt
 
+    def make(ekf, z, P, Q, H, R):  # type: ignore[no-untyped-def]
         kf = RK4EKF(dim_x=z.shape[0], dim_z=2)
-        kf.x, kf.P, kf.R = z, P, R
+        kf.ekf, kf.Qc, kf.x, kf.P, kf.R = ekf, Q, z, P, R
 
         def step(u, y):  # type: ignore[no-untyped-def]
             kf.predict(u)

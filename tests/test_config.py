@@ -358,7 +358,7 @@ def test_every_shipped_config_loads(path: pathlib.Path) -> None:
     """The configs in experiments/configs validate (the real-data ones name their files, which
     are only checked when loaded). The paper's reference EKF configs run its single filter."""
     cfg = Config.load(path)
-    if path.stem.endswith("_ekf") and not path.stem.startswith("arm_defaults"):
+    if path.stem.endswith("_ekf"):
         assert cfg.estimator.ensemble == 0, "reference EKF configs pin the paper's single filter"
     if path.stem.endswith("_defaults"):  # issue 9: "defaults need no tuning"
         assert cfg.estimator == EstimatorConfig()
