@@ -855,11 +855,14 @@ def test_progress_stretches_do_not_change_the_arithmetic(short_exp: Experiment) 
 # =============================================================================================
 # The compiled fast path: a scan over chunks of samples (one C++ loop per chunk)
 # =============================================================================================
-@pytest.fixture(scope="module")
-def compiled_step():  # type: ignore[no-untyped-def]
-    """`_small_start`'s step compiled with 64-sample chunks (one compile for the module)."""
+@pytest.fixture(scope="module", params=["native", "inductor"])
+def compiled_step(request):  # type: ignore[no-untyped-def]
+    """`_small_start`'s step compiled with 64-sample chunks (one compile for the module), by
+    each path: generated C (the default) and the Inductor scan."""
     model = _small_start()
-    return model, make_step(make_propagator(model, 1), compile=True, chunk=64)
+    native = request.param == "native"
+    step = make_step(make_propagator(model, 1), compile=True, chunk=64, native=native)
+    return model, step, request.param
 
 
 def _pass_inputs(model: ArmModel, exp: Experiment):  # type: ignore[no-untyped-def]
@@ -873,13 +876,13 @@ def _pass_inputs(model: ArmModel, exp: Experiment):  # type: ignore[no-untyped-d
 
 
 def test_compiled_chunks_equal_the_eager_step(compiled_step, short_exp: Experiment) -> None:
-    model, fast = compiled_step
+    model, fast, path = compiled_step
     belief, u, y, dt, Q, H, R = _pass_inputs(model, short_exp)
     eager = make_step(make_propagator(model, 1))
     eager_state, eager_stats = run_pass(belief, u, y, dt, Q, H, R, eager)
     # 249 steps = three full 64-sample chunks and a padded fourth.
     state, stats = run_pass(belief, u, y, dt, Q, H, R, fast)
-    assert fast.chunk.chosen and fast.chunk.chosen[0] is not fast.chunk.eager, "did not compile"
+    assert fast.chunk.path == path, f"ran {fast.chunk.path}, not {path}"
     torch.testing.assert_close(state.x, eager_state.x, rtol=1e-9, atol=1e-12)
     torch.testing.assert_close(state.P, eager_state.P, rtol=1e-9, atol=1e-15)
     assert stats.samples == eager_stats.samples == short_exp.n
@@ -897,7 +900,7 @@ def test_compiled_chunks_equal_the_eager_step(compiled_step, short_exp: Experime
 def test_compiled_chunk_names_the_failing_sample_and_keeps_the_belief_before_it(
     compiled_step, short_exp: Experiment
 ) -> None:
-    model, fast = compiled_step
+    model, fast, _ = compiled_step
     belief, u, y, dt, Q, H, R = _pass_inputs(model, short_exp)
     y = y.clone()
     y[137, 0] = math.inf  # in the third chunk, not at its start

@@ -181,6 +181,7 @@ def make_masked_step(
     compile: bool = False,
     chunk: int = CHUNK,
     mm: MatMul | None = None,
+    native: bool = True,
 ) -> Step:
     """`make_batched_step` plus the ensemble's per-sample bookkeeping, as one function (one
     compiled graph, so the masking costs no extra per-sample dispatch):
@@ -193,7 +194,10 @@ def make_masked_step(
     Compiled, it also filters `chunk` samples per call (`Step.chunk`, `torchfric.ekf.make_chunk`):
     ``chunk((x, P, good, fail_at, sum_e2, sum_nis, loglik), (j (C,), u (C,), y (C, m)),
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
-    samples (and no per-sample outputs).
+    samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
+    (`torchfric.native`): each member's whole chunk runs as one loop of scalar code, members
+    split across threads; otherwise, or when that path cannot translate the model, the
+    Inductor scan of the vmapped step.
     """
     mm = mm or matmul_for(2 + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
@@ -235,7 +239,10 @@ def make_masked_step(
         return masked(*args), ()
 
     options = chunk_options(mm)
-    return Step(masked, compile_with_fallback(masked), make_chunk(one, options=options), chunk)
+    # Native path: every carry has the member axis, and of the constants Q and R do.
+    scan = make_chunk(one, options=options, native=native, members=True,
+                      member_consts=(False, True, False, True, False))  # fmt: skip
+    return Step(masked, compile_with_fallback(masked), scan, chunk)
 
 
 def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]

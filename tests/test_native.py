@@ -1,0 +1,298 @@
+"""The generated-C path (`torchfric.native`) against the eager torch code it is traced from.
+
+Truth is the eager function: every operation in the translation table, every friction model and
+white-box term through the filter step, the ensemble's masked step member by member, and the
+padding mask. Over ≤ 50 filter samples the two agree to rounding (DESIGN: compare filter
+variants over short stretches; cond(P) ~ 1e12 amplifies rounding over thousands).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchfric import native
+from torchfric.arm import ArmModel
+from torchfric.ekf import CHUNK, make_chunk, make_propagator, make_step
+from torchfric.ensemble import make_masked_step
+from torchfric.friction import (
+    CoulombFriction,
+    OddTanhFriction,
+    PolytopicFriction,
+    StribeckFriction,
+)
+from torchfric.identify import EKFTuning
+from torchfric.native import NativeUnavailable, make_native_chunk
+
+pytestmark = pytest.mark.skipif(native.compiler() is None, reason="no C compiler here")
+
+
+@pytest.fixture(autouse=True)
+def _private_cache(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Each test builds into its own cache folder (the cache itself is tested below)."""
+    monkeypatch.setenv("TORCHFRIC_CACHE", str(tmp_path / "cache"))
+
+
+def _loop(fn, carry, xs, valid, consts):  # type: ignore[no-untyped-def]
+    """The reference: `fn` sample by sample in eager torch, padding samples skipped."""
+    outs = []
+    for i in range(valid.shape[0]):
+        new, o = fn(*carry, *(x[i] for x in xs), *consts)
+        if bool(valid[i]):
+            carry = new
+        outs.append(o)
+    return carry, tuple(torch.stack(c) for c in zip(*outs, strict=True))
+
+
+# ---------------------------------------------------------------------------------------------
+# The translation table, operation by operation
+# ---------------------------------------------------------------------------------------------
+def _ops(x, v, a, c, w):  # type: ignore[no-untyped-def]
+    """One sample using a broad slice of the ATen table: unary maths, broadcasting, reductions,
+    views, concatenation, comparisons, masks and softmax (and their autograd backwards)."""
+    y = torch.stack([torch.tanh(x[0]) * c, torch.exp(-x[1].abs()), torch.sqrt(x[2] * x[2] + 1.0)])
+    y = y + torch.sin(v) * torch.cos(a) - torch.log1p(x.abs()) / (1.0 + torch.sigmoid(x))
+    m = torch.outer(x, w)
+    y = y + m.sum(0) - m.max() + m.amin(1) + torch.softmax(m, dim=1)[:, 0]
+    y = torch.where(y > 0.5, y, -y) + torch.sign(x) * torch.clamp(x, -1.0, 1.0)
+    y = y + torch.nn.functional.pad(x[1:], (1, 0)) + torch.cat([x[:1], x[1:].flip(0)])
+    g = torch.func.grad(lambda z: (torch.tanh(z) * torch.softmax(z, 0)).sum() + z.pow(3).sum())(x)
+    ok = torch.isfinite(y).all() & (y.abs() < 1e6).all()
+    x1 = 0.5 * x + 0.1 * torch.tanh(y) + 0.01 * g
+    return (x1,), (y, ok, m.argmax(), torch.maximum(x, a).diag_embed().diagonal())
+
+
+def test_every_translated_operation_equals_eager() -> None:
+    torch.manual_seed(3)
+    C = 40
+    carry = (torch.tensor([0.3, -1.2, 0.7]),)
+    xs = (torch.randn(C, 3),)
+    valid = torch.ones(C, dtype=torch.bool)
+    valid[17] = False  # a padding sample mid-chunk leaves the carry as it was
+    consts = (torch.tensor([0.5, -2.0, 1.5]), torch.tensor(0.8), torch.tensor([1.0, 0.0, -0.3]))
+    chunk = make_native_chunk(_ops)
+    (x_n,), outs_n = chunk(carry, xs, valid, consts)
+    (x_e,), outs_e = _loop(_ops, carry, xs, valid, consts)
+    torch.testing.assert_close(x_n, x_e, rtol=1e-13, atol=1e-15)
+    for got, want in zip(outs_n, outs_e, strict=True):
+        assert got.dtype == want.dtype and got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-15)
+
+
+def test_structural_constants_are_part_of_the_key() -> None:
+    """Entries equal to 0 or 1 in a constant are compiled in; a constant with another pattern
+    must get code of its own, never the stale one."""
+
+    def fn(x, u, A):  # type: ignore[no-untyped-def]
+        x1 = A @ x + u
+        return (x1,), (x1,)
+
+    chunk = make_native_chunk(fn)
+    carry, xs, valid = (
+        (torch.tensor([1.0, 2.0]),),
+        (torch.ones(5, 2),),
+        torch.ones(5, dtype=torch.bool),
+    )
+    for A in (
+        torch.eye(2),
+        torch.tensor([[0.0, 1.0], [0.9, 0.0]]),
+        torch.tensor([[0.5, 0.2], [1.0, 0.3]]),
+    ):
+        (x_n,), _ = chunk(carry, xs, valid, (A,))
+        (x_e,), _ = _loop(fn, carry, xs, valid, (A,))
+        torch.testing.assert_close(x_n, x_e, rtol=1e-15, atol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The filter step, every friction model and white-box term
+# ---------------------------------------------------------------------------------------------
+def _models() -> dict[str, ArmModel]:
+    tanh = OddTanhFriction(3, w1=[0.4, 6.0, 40.0], w2=[0.05, 0.04, 0.12])
+    return {
+        "tanh": ArmModel(tanh, inertia=0.035, viscous=0.012, c_m=16.0),
+        "polytopic": ArmModel(PolytopicFriction(3), inertia=0.03, viscous=None, c_m=16.0),
+        "polytopic5": ArmModel(PolytopicFriction(5), inertia=0.03, viscous=None, c_m=16.0),
+        "coulomb": ArmModel(CoulombFriction(), inertia=0.03, viscous=0.01, c_m=16.0),
+        "stribeck": ArmModel(StribeckFriction(), inertia=0.03, viscous=0.01, c_m=16.0),
+        "white-box terms": ArmModel(
+            OddTanhFriction(3),
+            inertia=0.03,
+            viscous=0.01,
+            c_m=16.0,
+            offset=-0.02,
+            gravity=0.05,
+            asymmetric=0.003,
+            estimate_c_m=True,
+        ),  # fmt: skip
+    }
+
+
+def _stretch(n: int, m: int, seed: int = 0):  # type: ignore[no-untyped-def]
+    g = torch.Generator().manual_seed(seed)
+    t = torch.arange(n) * 1e-3
+    u = 0.3 * torch.sin(2 * math.pi * 3.0 * t) + 0.05 * torch.randn(n, generator=g)
+    q = 0.2 * torch.sin(2 * math.pi * 1.5 * t)
+    qd = 0.2 * 2 * math.pi * 1.5 * torch.cos(2 * math.pi * 1.5 * t)
+    y = torch.stack([q, qd], 1)
+    return u, (y if m == 2 else y[:, :1] if m == 1 else y)
+
+
+@pytest.mark.parametrize("name", list(_models()))
+@pytest.mark.parametrize("measure", ["both", "position"])
+def test_native_filter_step_equals_eager(name: str, measure: str) -> None:
+    model = _models()[name]
+    k = model.num_parameters
+    r = (1e-3,) if measure == "position" else (1e-3, 1e-2)
+    tuning = EKFTuning(measure=measure, p0_theta=0.05, r=r)
+    Q, _, H, R = tuning.matrices(k)
+    step = make_step(make_propagator(model, 2), compile=True)
+    u, y = _stretch(51, H.shape[0])
+    x0 = torch.cat([y[0, :1], torch.tensor([0.0]), model.get_theta()])
+    P0 = torch.block_diag(torch.diag(torch.tensor([1e-6, 1e-4])), 0.05 * torch.eye(k))
+    consts = (torch.tensor(1e-3), Q, H, R, torch.tensor(1e6))
+    xs, valid = (u[:-1], y[1:]), torch.ones(50, dtype=torch.bool)
+    (x_n, P_n), outs_n = step.chunk((x0, P0), xs, valid, consts)
+    assert step.chunk.path == "native", step.chunk.why_not_native
+
+    def one(x, P, u_, y_, *c):  # type: ignore[no-untyped-def]
+        x1, P1, *d = step.eager(x, P, u_, y_, *c)
+        return (x1, P1), tuple(d)
+
+    (x_e, P_e), outs_e = _loop(one, (x0, P0), xs, valid, consts)
+    torch.testing.assert_close(x_n, x_e, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(P_n, P_e, rtol=1e-9, atol=1e-15)
+    for got, want in zip(outs_n, outs_e, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-12)
+    assert bool(outs_n[3].all())
+
+
+# ---------------------------------------------------------------------------------------------
+# Ensembles: members in threads, each its own constants; a member that fails stays frozen
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("threads", ["1", "2"])
+def test_native_ensemble_equals_the_batched_eager_step(threads: str, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    monkeypatch.setenv("TORCHFRIC_NATIVE_THREADS", threads)
+    model = _models()["tanh"]
+    k = model.num_parameters
+    Q, _, H, R = EKFTuning(p0_theta=0.05).matrices(k)
+    K = 5
+    scales = torch.tensor([0.1, 1.0, 10.0, 1.0, 3.0])
+    step = make_masked_step(model, 1, compile=True)
+    u, y = _stretch(41, 2, seed=4)
+    theta = model.get_theta().repeat(K, 1)
+    theta[3, -1] += 0.5  # another start for member 3
+    x0 = torch.cat([y[0].expand(K, 2), theta], 1)
+    P0 = torch.block_diag(torch.zeros(2, 2), 0.05 * torch.eye(k)).repeat(K, 1, 1)
+    carry = (x0, P0, torch.ones(K, dtype=torch.bool), torch.full((K,), -1),
+             torch.zeros(K, 2), torch.zeros(K), torch.zeros(K))  # fmt: skip
+    bound = torch.tensor(1e6)
+    consts = (torch.tensor(1e-3), Q * scales[:, None, None], H, R * scales[:, None, None], bound)
+    xs = (torch.arange(1, 41), u[:-1], y[1:].clone())
+    valid = torch.ones(40, dtype=torch.bool)
+    valid[-3:] = False  # padding at the end of the chunk
+    got, _ = step.chunk(carry, xs, valid, consts)
+    assert step.chunk.path == "native", step.chunk.why_not_native
+    want = carry
+    for i in range(37):
+        want = step.eager(*want, xs[0][i], xs[1][i], xs[2][i], *consts)
+    for a, b in zip(got, want, strict=True):
+        if a.dtype == torch.float64:
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+        else:
+            assert torch.equal(a, b)
+    assert bool(got[2].all())
+
+
+def test_native_ensemble_freezes_a_failing_member_like_eager() -> None:
+    model = _models()["tanh"]
+    k = model.num_parameters
+    Q, _, H, R = EKFTuning(p0_theta=0.05).matrices(k)
+    K = 3
+    step = make_masked_step(model, 1, compile=True)
+    u, y = _stretch(31, 2, seed=1)
+    x0 = torch.cat([torch.zeros(K, 2), model.get_theta().repeat(K, 1)], 1)
+    P0 = torch.block_diag(torch.zeros(2, 2), 0.05 * torch.eye(k)).repeat(K, 1, 1)
+    carry = (x0, P0, torch.ones(K, dtype=torch.bool), torch.full((K,), -1),
+             torch.zeros(K, 2), torch.zeros(K), torch.zeros(K))  # fmt: skip
+    # member 1's R is negative: S is not positive definite at the first update
+    r = torch.tensor([1.0, -1e6, 1.0])
+    consts = (torch.tensor(1e-3), Q.repeat(K, 1, 1), H, R * r[:, None, None], torch.tensor(1e6))
+    xs, valid = (torch.arange(1, 31), u[:-1], y[1:]), torch.ones(30, dtype=torch.bool)
+    got, _ = step.chunk(carry, xs, valid, consts)
+    assert step.chunk.path == "native"
+    want = carry
+    for i in range(30):
+        want = step.eager(*want, xs[0][i], xs[1][i], xs[2][i], *consts)
+    assert got[2].tolist() == want[2].tolist() == [True, False, True]
+    assert got[3].tolist() == want[3].tolist() == [-1, 1, -1]
+    torch.testing.assert_close(got[0], want[0], rtol=1e-9, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Fallbacks and the cache
+# ---------------------------------------------------------------------------------------------
+def test_untranslatable_function_falls_back_to_inductor_with_the_reason() -> None:
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        x1 = torch.special.erf(x) * c  # erf is not in the table
+        return (x1,), (x1,)
+
+    with pytest.raises(NativeUnavailable, match="erf"):
+        make_native_chunk(fn)(
+            (torch.ones(2),), (), torch.ones(3, dtype=torch.bool), (torch.tensor(0.5),)
+        )
+    chunk = make_chunk(fn, native=True)
+    (x,), (xs,) = chunk((torch.ones(2),), (), torch.ones(3, dtype=torch.bool), (torch.tensor(0.5),))
+    assert chunk.path in ("inductor", "eager") and "erf" in chunk.why_not_native[0]
+    expect = torch.ones(2)
+    for _ in range(3):
+        expect = torch.special.erf(expect) * 0.5
+    torch.testing.assert_close(x, expect, rtol=1e-14, atol=0)
+
+
+def test_no_compiler_means_the_inductor_path(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    monkeypatch.setattr(native, "compiler", lambda: None)
+
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        return (x * c,), ()
+
+    chunk = make_chunk(fn, native=True)
+    (x,), _ = chunk((torch.ones(2),), (), torch.ones(4, dtype=torch.bool), (torch.tensor(0.5),))
+    assert chunk.path in ("inductor", "eager") and "compiler" in chunk.why_not_native[0]
+    torch.testing.assert_close(x, torch.full((2,), 0.0625), rtol=0, atol=0)
+
+
+def test_compiled_code_is_cached_on_disk_and_reused(monkeypatch, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        return (torch.tanh(x) + c,), ()
+
+    args = ((torch.ones(3),), (), torch.ones(4, dtype=torch.bool), (torch.tensor(0.25),))
+    (first,), _ = make_native_chunk(fn)(*args)
+    libs = list(native.cache_dir().glob("step_*.so"))
+    assert len(libs) == 1
+    # A new process has nothing loaded: it must find the library without compiling.
+    monkeypatch.setattr(native, "_LOADED", {})
+
+    def no_compiler(*a, **k):  # type: ignore[no-untyped-def]
+        raise AssertionError("compiled again instead of loading the cached library")
+
+    monkeypatch.setattr(native.subprocess, "run", no_compiler)
+    (again,), _ = make_native_chunk(fn)(*args)
+    assert torch.equal(first, again)
+    assert list(native.cache_dir().glob("step_*.so")) == libs
+    assert not list(native.cache_dir().glob("tmp*")), "a build folder was left behind"
+
+
+def test_default_chunk_size_is_served_natively() -> None:
+    """`make_step(compile=True)` with the default chunk (what `torchfric train` runs)."""
+    model = _models()["tanh"]
+    Q, _, H, R = EKFTuning().matrices(model.num_parameters)
+    step = make_step(make_propagator(model, 1), compile=True)
+    assert step.size == CHUNK
+    u, y = _stretch(CHUNK + 1, 2)
+    x0 = torch.cat([torch.zeros(2), model.get_theta()])
+    P0 = torch.block_diag(torch.zeros(2, 2), torch.eye(model.num_parameters))
+    step.chunk((x0, P0), (u[:-1], y[1:]), torch.ones(CHUNK, dtype=torch.bool),
+               (torch.tensor(1e-3), Q, H, R, torch.tensor(1e6)))  # fmt: skip
+    assert step.chunk.path == "native"
