@@ -296,3 +296,38 @@ def test_default_chunk_size_is_served_natively() -> None:
     step.chunk((x0, P0), (u[:-1], y[1:]), torch.ones(CHUNK, dtype=torch.bool),
                (torch.tensor(1e-3), Q, H, R, torch.tensor(1e6)))  # fmt: skip
     assert step.chunk.path == "native"
+
+
+def test_members_with_per_sample_outputs_run_one_at_a_time() -> None:
+    """Member mode with per-sample outputs takes the scalar program; the outputs are stacked
+    `(C, K, ...)` as the scan of the batched function stacks them."""
+
+    def fn(x, u, a):  # type: ignore[no-untyped-def]
+        x1 = torch.tanh(a * x) + u
+        return (x1,), (x1.sum(-1),)
+
+    K, C = 3, 6
+    carry = (torch.arange(K * 2.0).reshape(K, 2),)
+    xs, valid = (torch.linspace(0, 1, C),), torch.ones(C, dtype=torch.bool)
+    a = torch.tensor([0.5, 1.0, 2.0]).reshape(K, 1)
+    (x,), (s,) = make_native_chunk(fn, members=True, member_consts=(True,))(carry, xs, valid, (a,))
+    assert s.shape == (C, K)
+    for m in range(K):
+        (x_e,), (s_e,) = _loop(fn, (carry[0][m : m + 1],), xs, valid, (a[m : m + 1],))
+        torch.testing.assert_close(x[m : m + 1], x_e, rtol=1e-15, atol=0)
+        torch.testing.assert_close(s[:, m], s_e[:, 0], rtol=1e-15, atol=0)
+
+
+def test_a_step_above_the_size_ceiling_takes_the_inductor_path(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """gcc's time grows faster than the code; past `_MAX_STATEMENTS` the scan is Inductor's."""
+    monkeypatch.setattr(native, "_MAX_STATEMENTS", 5)
+
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        x1 = torch.tanh(x * c + 1.0) * c
+        return (x1,), ()
+
+    chunk = make_chunk(fn, native=True)
+    (x,), _ = chunk((torch.ones(3),), (), torch.ones(2, dtype=torch.bool), (torch.tensor(0.5),))
+    assert chunk.path in ("inductor", "eager") and "scalar operations" in chunk.why_not_native[0]
+    expect = torch.tanh(torch.tanh(torch.ones(3) * 0.5 + 1.0) * 0.5 * 0.5 + 1.0) * 0.5
+    torch.testing.assert_close(x, expect, rtol=1e-15, atol=0)
