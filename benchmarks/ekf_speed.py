@@ -6,21 +6,26 @@
 
 Sections:
 1. One filter through the real code path (`make_propagator` → `make_step` → `run_pass`, float64,
-   paper tuning, the rig's identification data): steps/s eager and compiled, and the one-time
-   compile, for tanh(3, 10, 30) and polytopic(3, 5, 9).
+   paper tuning, the rig's identification data): steps/s eager, through the Inductor scan and
+   through the generated C (`torchfric.native`, the default), each with its one-time compile,
+   for tanh(3, 10, 30) and polytopic(3, 5, 9).
 2. Baselines in the same run: an EKF in numpy with a hand-derived Jacobian implementing the same
    equations (RK4 3/8 map with its variational Φ, trapezoid Q_d, Joseph update) for tanh(3),
    checked against torchfric's step to 1e-9 before it is timed; and filterpy's EKF where installed
    (it is not a dependency; the row says so when absent).
 3. Batched ensembles (`torchfric.ensemble.make_masked_step`, compiled chunks, as
-   `identify_ekf_ensemble` runs them): filter-steps/s against K.
-4. Pass time against the number of samples (compiled tanh(3), 1 k – 1 M) and the peak resident
-   memory.
+   `identify_ekf_ensemble` runs them): filter-steps/s against K, generated C (four members per
+   SIMD vector, members split across the cores) and the Inductor scan of the vmapped step.
+4. Pass time against the number of samples (default path, tanh(3), 1 k – 1 M) and the peak
+   resident memory.
 5. `identify_ekf` end to end: 10 passes of tanh(3) over the rig's 30 s identification data, as
-   `torchfric train` runs them (the compile is in pass 1).
+   `torchfric train` runs them, in a fresh process: with an empty build cache (the build is in
+   pass 1) and again with the library cached on disk.
 
-Compiled means: `torch.compile` of a `scan` over 1000-sample chunks (Inductor's C++ wrapper);
-the first call per process and model compiles it (the "first call" columns).
+Inductor means `torch.compile` of a `scan` over 1000-sample chunks (Inductor's C++ wrapper);
+native means the step traced, scalarised and compiled by the system C compiler (cached on disk
+by its source's hash). The first call per process and model compiles (the "first call" columns;
+this benchmark builds into an empty cache folder of its own, so they include the C build).
 """
 
 from __future__ import annotations
@@ -28,9 +33,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -71,10 +78,11 @@ def initial(model: ArmModel, exp) -> EKFState:  # type: ignore[no-untyped-def]
     return EKFState(x, P)
 
 
-def time_pass(model: ArmModel, exp, n: int, compile: bool) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """(steps/s, first-call seconds) of `run_pass` over n samples."""
+def time_pass(model: ArmModel, exp, n: int, compile: bool, native: bool = True):  # type: ignore[no-untyped-def]
+    """(steps/s, first-call seconds, path) of `run_pass` over n samples; path is the chunk's
+    ("native", "inductor", "eager")."""
     Q, H, R = tuning(model.num_parameters)
-    step = make_step(make_propagator(model, 1), compile=compile)
+    step = make_step(make_propagator(model, 1), compile=compile, native=native)
     u, y = exp.u.to(F64), torch.stack([exp.q, exp.qdot], -1).to(F64)
     dt = torch.tensor(exp.dt, dtype=F64)
     t0 = time.perf_counter()
@@ -82,7 +90,8 @@ def time_pass(model: ArmModel, exp, n: int, compile: bool) -> tuple[float, float
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     run_pass(initial(model, exp), u[:n], y[:n], dt, Q, H, R, step)
-    return (n - 1) / (time.perf_counter() - t0), first
+    path = step.chunk.path if step.chunk is not None else "eager"
+    return (n - 1) / (time.perf_counter() - t0), first, path
 
 
 # -- numpy baseline --------------------------------------------------------------------------
@@ -224,9 +233,9 @@ def filterpy_baseline(model: ArmModel, exp, n: int) -> tuple[float, float] | Non
     return _baseline(model, exp, n, make)
 
 
-def batched(model: ArmModel, exp, K: int, n: int, mm=None) -> tuple[float, float]:  # type: ignore[no-untyped-def]
-    """(filter-steps/s, first-call seconds) of the ensemble's compiled chunked step (the code
-    `identify_ekf_ensemble` runs: vmap of the step, masking, one scan per 1000 samples)."""
+def batched(model: ArmModel, exp, K: int, n: int, native: bool = True):  # type: ignore[no-untyped-def]
+    """(filter-steps/s, first-call seconds, path) of the ensemble's compiled chunked step (the
+    code `identify_ekf_ensemble` runs: the masked step, one chunk call per 1000 samples)."""
     k = model.num_parameters
     Q, H, R = tuning(k)
     g = torch.Generator().manual_seed(0)
@@ -235,7 +244,7 @@ def batched(model: ArmModel, exp, K: int, n: int, mm=None) -> tuple[float, float
     x = torch.cat([st.x[:2].expand(K, 2), th], 1)
     P = st.P.expand(K, -1, -1).clone()
     Qk, Rk = Q.expand(K, -1, -1).clone(), R.expand(K, -1, -1).clone()
-    step = make_masked_step(model, 1, compile=True, mm=mm)
+    step = make_masked_step(model, 1, compile=True, native=native)
     f64 = torch.float64
     carry = (x, P, torch.ones(K, dtype=torch.bool), torch.full((K,), -1),
              torch.zeros(K, 2, dtype=f64), torch.zeros(K, dtype=f64), torch.zeros(K, dtype=f64))  # fmt: skip
@@ -255,7 +264,8 @@ def batched(model: ArmModel, exp, K: int, n: int, mm=None) -> tuple[float, float
     for j0 in range(1, 1 + n, C):
         carry = chunk(carry, j0)
     bool(carry[2].all())
-    return K * len(range(1, 1 + n, C)) * C / (time.perf_counter() - t0), first
+    rate = K * len(range(1, 1 + n, C)) * C / (time.perf_counter() - t0)
+    return rate, first, step.chunk.path
 
 
 def identification(model: ArmModel, exp, passes: int) -> tuple[float, float, float]:  # type: ignore[no-untyped-def]
@@ -283,54 +293,66 @@ def main() -> None:
         print(json.dumps(identification(prefit(model, [exp]).model, exp, args.identify_only)))
         return
     torch.set_num_threads(1)
+    # The first calls below include the C build: build into a folder of this run's own.
+    os.environ["TORCHFRIC_CACHE"] = tempfile.mkdtemp(prefix="torchfric-bench-")
     exp = rig_data()
     out: dict = {"single": [], "baselines": {}, "batched": [], "scaling": []}
-    n_c, n_e = (3000, 200) if args.quick else (20000, 600)
+    n_c, n_e, n_n = (3000, 200, 3000) if args.quick else (20000, 600, 30000)
 
     print("## 1. One filter, real code path (run_pass), float64, rig data")
-    print("| model | k | eager steps/s | compiled steps/s | first call (compile) s |")
-    print("|---|---|---|---|---|")
+    print("| model | k | eager steps/s | Inductor scan steps/s (first call s) "
+          "| native steps/s (first call s) | native / Inductor |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
     for kind, size in [("tanh", 3), ("tanh", 10), ("tanh", 30), ("polytopic", 3),
                        ("polytopic", 5), ("polytopic", 9)]:  # fmt: skip
         model = prefit(ArmModel(make_friction(kind, size), inertia=0.03,
                                 viscous=0.01 if kind == "tanh" else None, c_m=16.0), [exp]).model  # fmt: skip
-        eager, _ = time_pass(model, exp, n_e, compile=False)
-        comp, first = time_pass(model, exp, n_c, compile=True)
+        eager, _, _ = time_pass(model, exp, n_e, compile=False)
+        ind, ind_first, _ = time_pass(model, exp, n_c, compile=True, native=False)
+        nat, nat_first, path = time_pass(model, exp, n_n, compile=True, native=True)
         out["single"].append({"model": f"{kind}({size})", "k": model.num_parameters,
-                              "eager": eager, "compiled": comp, "compile_s": first})  # fmt: skip
-        print(f"| {kind}({size}) | {model.num_parameters} | {eager:,.0f} | {comp:,.0f} | {first:.1f} |",
-              flush=True)  # fmt: skip
+                              "eager": eager, "inductor": ind, "inductor_compile_s": ind_first,
+                              "native": nat, "native_compile_s": nat_first, "native_path": path})  # fmt: skip
+        note = "" if path == "native" else f" ({path}: step above the native size ceiling)"
+        print(f"| {kind}({size}) | {model.num_parameters} | {eager:,.0f} | {ind:,.0f} ({ind_first:.1f}) "
+              f"| {nat:,.0f} ({nat_first:.1f}){note} | {nat / ind:.1f} |", flush=True)  # fmt: skip
 
     tanh3 = prefit(
         ArmModel(make_friction("tanh", 3), inertia=0.03, viscous=0.01, c_m=16.0), [exp]
     ).model
     print("\n## 2. Baselines, tanh(3), same data, same machine, same run")
-    np_rate, diff = numpy_baseline(tanh3, exp, n_c)
-    ours = out["single"][0]["compiled"]
-    fp = filterpy_baseline(tanh3, exp, n_c)
+    np_rate, diff = numpy_baseline(tanh3, exp, n_e * 5)
+    ours, ind = out["single"][0]["native"], out["single"][0]["inductor"]
+    fp = filterpy_baseline(tanh3, exp, n_e * 5)
     out["baselines"] = {"numpy_analytic": np_rate, "numpy_max_diff": diff, "torchfric": ours,
-                        "filterpy": fp and fp[0], "filterpy_max_diff": fp and fp[1]}  # fmt: skip
-    print("| implementation | steps/s | ratio to torchfric compiled |")
+                        "torchfric_inductor": ind, "filterpy": fp and fp[0],
+                        "filterpy_max_diff": fp and fp[1]}  # fmt: skip
+    print("| implementation | steps/s | torchfric (native) is faster by |")
     print("|---|---|---|")
-    print(f"| torchfric, compiled (autograd Jacobians) | {ours:,.0f} | 1.0 |")
+    print(f"| torchfric, generated C (the default; autograd Jacobians) | {ours:,.0f} | 1.0 |")
+    print(f"| torchfric, Inductor scan | {ind:,.0f} | {ours / ind:.1f}x |")
     print(f"| numpy, hand-derived Jacobian (max diff to torchfric over 50 steps {diff:.1e}) "
-          f"| {np_rate:,.0f} | {np_rate / ours:.2f} |")  # fmt: skip
+          f"| {np_rate:,.0f} | {ours / np_rate:.0f}x |")  # fmt: skip
     if fp is None:
         print('| filterpy | – | not installed (pip install -e ".[bench]"); not measured |')
     else:
         print(f"| filterpy `ExtendedKalmanFilter`, the numpy RK4 map and Jacobian plugged in "
-              f"(max diff {fp[1]:.1e}) | {fp[0]:,.0f} | {fp[0] / ours:.2f} |", flush=True)  # fmt: skip
+              f"(max diff {fp[1]:.1e}) | {fp[0]:,.0f} | {ours / fp[0]:.0f}x |", flush=True)  # fmt: skip
 
-    print("\n## 3. Batched ensembles, tanh(3), compiled chunks of the vmapped, masked step")
-    print("| K filters | filter-steps/s | per step of the batch, µs | first call (compile) s |")
+    print("\n## 3. Batched ensembles, tanh(3), the masked step in chunks of 1000 samples")
+    print("| K filters | native filter-steps/s (first call s) | Inductor scan filter-steps/s "
+          "(first call s) | native / Inductor |")  # fmt: skip
     print("|---|---|---|---|")
-    for K in [1, 16, 64, 256, 1024]:
+    for K in [1, 9, 16, 64, 256, 1024]:
         n = 1000 if args.quick or K >= 256 else 4000
-        rate, first = batched(tanh3, exp, K, n)
-        out["batched"].append({"K": K, "filter_steps_per_s": rate, "compile_s": first})
-        print(f"| {K} | {rate:,.0f} | {1e6 * K / rate:,.0f} | {first:.1f} |", flush=True)
+        nat, nat_first, path = batched(tanh3, exp, K, 4 * n)
+        ind, ind_first, _ = batched(tanh3, exp, K, n, native=False)
+        out["batched"].append({"K": K, "native": nat, "native_compile_s": nat_first,
+                               "native_path": path, "inductor": ind, "inductor_compile_s": ind_first})  # fmt: skip
+        print(f"| {K} | {nat:,.0f} ({nat_first:.1f}) | {ind:,.0f} ({ind_first:.1f}) "
+              f"| {nat / ind:.1f} |", flush=True)  # fmt: skip
 
-    print("\n## 4. Pass time against samples (compiled tanh(3)); peak memory")
+    print("\n## 4. Pass time against samples (default path, tanh(3)); peak memory")
     print("| samples | seconds | steps/s |")
     print("|---|---|---|")
     reps = 34  # 34 × 30 s at 1 kHz > 1 M samples
@@ -338,7 +360,7 @@ def main() -> None:
     t_long = torch.arange(long[0].numel(), dtype=F64) * exp.dt
     big = make_experiment(t_long, long[0], long[1], qdot=long[2])
     for n in [1000, 10000] if args.quick else [1000, 10000, 100000, 1000000]:
-        rate, _ = time_pass(tanh3, big, n, compile=True)
+        rate, _, _ = time_pass(tanh3, big, n, compile=True)
         out["scaling"].append({"samples": n, "seconds": n / rate, "steps_per_s": rate})
         print(f"| {n:,} | {n / rate:.2f} | {rate:,.0f} |", flush=True)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -346,16 +368,21 @@ def main() -> None:
 
     passes = 3 if args.quick else 10
     print(f"\n## 5. identify_ekf, tanh(3), {passes} passes over the rig's 30 s identification data")
-    print("| total s | pass 1 s (with the one-time compile) | later passes, median s |")
-    print("|---|---|---|")
-    # In a fresh process, as `torchfric train` would run it: the compile is in pass 1.
-    run = subprocess.run(
-        [sys.executable, __file__, "--identify-only", str(passes)],
-        capture_output=True, text=True, check=True,
-    )  # fmt: skip
-    total, first, later = json.loads(run.stdout.strip().splitlines()[-1])
-    out["identify"] = {"passes": passes, "total_s": total, "pass1_s": first, "later_s": later}
-    print(f"| {total:.1f} | {first:.1f} | {later:.2f} |", flush=True)
+    print("| build cache | total s | pass 1 s (with the one-time build) | later passes, median s |")
+    print("|---|---|---|---|")
+    # In fresh processes, as `torchfric train` would run it: the build is in pass 1. The first
+    # process finds an empty cache folder, the second the library the first one built.
+    out["identify"] = []
+    with tempfile.TemporaryDirectory() as cache:
+        for label in ["empty", "cached"]:
+            run = subprocess.run(
+                [sys.executable, __file__, "--identify-only", str(passes)],
+                capture_output=True, text=True, check=True, env={**os.environ, "TORCHFRIC_CACHE": cache},
+            )  # fmt: skip
+            total, first, later = json.loads(run.stdout.strip().splitlines()[-1])
+            out["identify"].append({"cache": label, "passes": passes, "total_s": total,
+                                    "pass1_s": first, "later_s": later})  # fmt: skip
+            print(f"| {label} | {total:.1f} | {first:.1f} | {later:.2f} |", flush=True)
     print(f"\npeak resident memory of this whole benchmark process: {rss:.0f} MB "
           "(run_pass keeps sums, not per-sample history)")  # fmt: skip
     if args.json:
