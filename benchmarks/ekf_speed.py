@@ -285,12 +285,20 @@ def main() -> None:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json")
     p.add_argument("--identify-only", type=int, metavar="PASSES", help=argparse.SUPPRESS)
+    p.add_argument("--samples", type=int, default=0, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.identify_only:  # section 5's fresh process: prints its JSON row
         torch.set_num_threads(1)
         exp = rig_data()
-        model = ArmModel(make_friction("tanh", 3), inertia=0.03, viscous=0.01, c_m=16.0)
-        print(json.dumps(identification(prefit(model, [exp]).model, exp, args.identify_only)))
+        model = prefit(ArmModel(make_friction("tanh", 3), inertia=0.03, viscous=0.01, c_m=16.0), [exp]).model
+        if args.samples:  # the record repeated to `samples` (the memory row)
+            reps = -(-args.samples // exp.n)
+            t = torch.arange(exp.n * reps, dtype=F64) * exp.dt
+            exp = make_experiment(t, exp.u.repeat(reps), exp.q.repeat(reps), qdot=exp.qdot.repeat(reps))
+            exp = exp.slice(0, args.samples)
+        row = identification(model, exp, args.identify_only)
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        print(json.dumps([*row, rss, exp.n]))
         return
     torch.set_num_threads(1)
     # The first calls below include the C build: build into a folder of this run's own.
@@ -368,21 +376,23 @@ def main() -> None:
 
     passes = 3 if args.quick else 10
     print(f"\n## 5. identify_ekf, tanh(3), {passes} passes over the rig's 30 s identification data")
-    print("| build cache | total s | pass 1 s (with the one-time build) | later passes, median s |")
-    print("|---|---|---|---|")
+    print("| build cache | samples | total s | pass 1 s (with the one-time build) "
+          "| later passes, median s | peak RSS MB |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
     # In fresh processes, as `torchfric train` would run it: the build is in pass 1. The first
     # process finds an empty cache folder, the second the library the first one built.
     out["identify"] = []
     with tempfile.TemporaryDirectory() as cache:
-        for label in ["empty", "cached"]:
+        long = 100_000 if args.quick else 1_000_000
+        for label, samples in [("empty", 0), ("cached", 0), ("cached", long)]:
             run = subprocess.run(
-                [sys.executable, __file__, "--identify-only", str(passes)],
+                [sys.executable, __file__, "--identify-only", str(passes), "--samples", str(samples)],
                 capture_output=True, text=True, check=True, env={**os.environ, "TORCHFRIC_CACHE": cache},
             )  # fmt: skip
-            total, first, later = json.loads(run.stdout.strip().splitlines()[-1])
-            out["identify"].append({"cache": label, "passes": passes, "total_s": total,
-                                    "pass1_s": first, "later_s": later})  # fmt: skip
-            print(f"| {label} | {total:.1f} | {first:.1f} | {later:.2f} |", flush=True)
+            total, first, later, rss, n = json.loads(run.stdout.strip().splitlines()[-1])
+            out["identify"].append({"cache": label, "samples": n, "passes": passes, "total_s": total,
+                                    "pass1_s": first, "later_s": later, "peak_rss_mb": rss})  # fmt: skip
+            print(f"| {label} | {n:,} | {total:.1f} | {first:.1f} | {later:.2f} | {rss:.0f} |", flush=True)
     print(f"\npeak resident memory of this whole benchmark process: {rss:.0f} MB "
           "(run_pass keeps sums, not per-sample history)")  # fmt: skip
     if args.json:

@@ -1261,7 +1261,13 @@ def make_native_chunk(
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
         fixed = [_structure(k, members and f) for k, f in zip(consts, flags, strict=True)]
-        key = (tuple((t.shape, t.dtype) for t in (*carry, *xs, *consts)),
+        # one member's shapes: ensembles of any size share the code (and the trace)
+        per_member = [c.shape[1:] if members else c.shape for c in carry]
+        per_member += [x.shape[1:] for x in xs]
+        per_member += [
+            k.shape[1:] if members and f else k.shape for k, f in zip(consts, flags, strict=True)
+        ]
+        key = (tuple(per_member), tuple(t.dtype for t in (*carry, *xs, *consts)),
                tuple(tuple(sorted(f.items())) for f in fixed))  # fmt: skip
         if key not in built:
             one_c = [c[:1] if members else c for c in carry]
