@@ -14,10 +14,11 @@ import pytest
 import scipy.integrate
 import torch
 
+from torchfric import native
 from torchfric.arm import ArmModel
 from torchfric.errors import TorchfricError
 from torchfric.friction import CoulombFriction, OddTanhFriction, PolytopicFriction
-from torchfric.simulate import ENGINES, SOLVERS, auto_substeps, sample_grid, simulate
+from torchfric.simulate import ENGINES, SOLVERS, _rk4_chunk, auto_substeps, sample_grid, simulate
 
 
 def _no_black_box(**kwargs) -> ArmModel:
@@ -507,3 +508,7 @@ def test_compiled_engine_gradient_equals_backprop_through_odeint(batch) -> None:
         grads[engine] = (states.detach(), *torch.autograd.grad(loss, (theta, x)))
     for ref, got in zip(grads["odeint"], grads["compiled"], strict=True):
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    if native.compiler() is not None:  # both scans ran as generated C
+        for direction in ("forward", "backward"):
+            chunk = _rk4_chunk(model, direction)
+            assert chunk.path == "native", chunk.why_not_native

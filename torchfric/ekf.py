@@ -466,22 +466,22 @@ def make_chunk(
     from .native import NativeUnavailable, make_native_chunk
 
     generated = make_native_chunk(fn, members=members, member_consts=member_consts)
-    broken: list[str] = []
+    reasons: list[str] = []
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
-        if not broken:
-            try:
-                out = generated(carry, xs, valid, consts)
-                chunk.path = "native"  # type: ignore[attr-defined]
-                return out
-            except NativeUnavailable as exc:  # this model: the next path, from now on
-                broken.append(str(exc))
+        try:
+            out = generated(carry, xs, valid, consts)
+            chunk.path = "native"  # type: ignore[attr-defined]
+            return out
+        except NativeUnavailable as exc:  # this shape (remembered per shape): the next path
+            if str(exc) not in reasons:
+                reasons.append(str(exc))
         out = inductor(carry, xs, valid, consts)
         chunk.path = _path_of(inductor)  # type: ignore[attr-defined]
         return out
 
     chunk.path = None  # type: ignore[attr-defined]
-    chunk.why_not_native = broken  # type: ignore[attr-defined]
+    chunk.why_not_native = reasons  # type: ignore[attr-defined]
     return chunk
 
 

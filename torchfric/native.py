@@ -416,11 +416,21 @@ def _slice(a: np.ndarray, dim: int = 0, start: Any = None, end: Any = None, step
     return a[tuple(idx)]
 
 
+def _put(out: np.ndarray, idx: tuple, value: np.ndarray) -> None:
+    """``out[idx] = value`` element by element (numpy would store a 0-d object array that
+    lands in a single slot as the array itself, not its element)."""
+    target = out[idx]
+    if isinstance(target, np.ndarray) and target.ndim:
+        target[...] = value  # a view: numpy copies the elements
+    else:
+        out[idx] = _arr(value)[()]
+
+
 def _slice_backward(g, sizes, dim, start, end, step):  # type: ignore[no-untyped-def]
     out = _fill(sizes, 0.0)
     idx = [slice(None)] * len(sizes)
     idx[dim] = slice(start, end, step)
-    out[tuple(idx)] = g
+    _put(out, tuple(idx), g)
     return out
 
 
@@ -428,7 +438,7 @@ def _select_backward(g, sizes, dim, index):  # type: ignore[no-untyped-def]
     out = _fill(sizes, 0.0)
     idx: list[Any] = [slice(None)] * len(sizes)
     idx[dim] = index
-    out[tuple(idx)] = g
+    _put(out, tuple(idx), g)
     return out
 
 
@@ -445,7 +455,7 @@ def _pad(a: np.ndarray, pad: Sequence[int], value: float = 0.0) -> np.ndarray:
     if any(w < 0 for pair in widths for w in pair):
         raise NativeUnavailable("negative padding")
     out = _fill([s + lo + hi for s, (lo, hi) in zip(a.shape, widths, strict=True)], value)
-    out[tuple(slice(lo, lo + s) for s, (lo, _) in zip(a.shape, widths, strict=True))] = a
+    _put(out, tuple(slice(lo, lo + s) for s, (lo, _) in zip(a.shape, widths, strict=True)), a)
     return out
 
 
@@ -568,7 +578,7 @@ def _diag_embed(a: np.ndarray, offset: int, d1: int, d2: int) -> np.ndarray:
     n = a.shape[-1]
     out = _fill((*a.shape, n), 0.0)
     for i in range(n):
-        out[..., i, i] = a[..., i]
+        _put(out, (..., i, i), a[..., i])
     return out
 
 
@@ -743,6 +753,9 @@ def _evaluate(gm: torch.fx.GraphModule, inputs: list[np.ndarray]) -> list[np.nda
             if fn is None:
                 raise NativeUnavailable(f"operation {node.target} has no native translation")
             result = fn(*load(node.args), **load(node.kwargs))
+            for r in result if isinstance(result, (list, tuple)) else [result]:
+                if isinstance(r, np.ndarray) and any(isinstance(v, np.ndarray) for v in r.flat):
+                    raise NativeUnavailable(f"translating {node.target} nested an array")
             env[node.name] = _arr(result) if not isinstance(result, (list, tuple)) else result
         elif node.op == "get_attr":  # a tensor constant captured by the trace
             value = getattr(gm, node.target)
@@ -1253,7 +1266,8 @@ def make_native_chunk(
     have shape ``(C, K, ...)``, as the scan of the batched function gives them. Raises `NativeUnavailable` (before touching anything) when the
     function cannot be translated.
     """
-    built: dict[tuple, tuple[ctypes.CDLL, list, list]] = {}
+    built: dict[tuple, tuple[ctypes.CDLL, list, list, int]] = {}
+    failed: dict[tuple, NativeUnavailable] = {}
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
         carry, xs, consts = tuple(carry), tuple(xs), tuple(consts)
@@ -1269,14 +1283,22 @@ def make_native_chunk(
         ]
         key = (tuple(per_member), tuple(t.dtype for t in (*carry, *xs, *consts)),
                tuple(tuple(sorted(f.items())) for f in fixed))  # fmt: skip
+        if key in failed:  # this shape was tried: the same reason, without tracing again
+            raise failed[key]
         if key not in built:
+            if compiler() is None:
+                raise NativeUnavailable("no C compiler found (set CC)")
             one_c = [c[:1] if members else c for c in carry]
             one_k = [k[:1] if (members and f) else k for k, f in zip(consts, flags, strict=True)]
-            src, shapes, dtypes, lanes = _source(
-                fn, one_c, [x[0] for x in xs], one_k,
-                flags if members else (False,) * len(consts), fixed, members=members,
-            )  # fmt: skip
-            built[key] = (_build(src), shapes, dtypes, lanes)
+            try:
+                src, shapes, dtypes, lanes = _source(
+                    fn, one_c, [x[0] for x in xs], one_k,
+                    flags if members else (False,) * len(consts), fixed, members=members,
+                )  # fmt: skip
+                built[key] = (_build(src), shapes, dtypes, lanes)
+            except NativeUnavailable as exc:
+                failed[key] = exc
+                raise
         lib, shapes, dtypes, lanes = built[key]
         new = [c.detach().clone().contiguous() for c in carry]
         ins = [x.detach().contiguous() for x in xs]

@@ -211,7 +211,10 @@ def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-
                 return (g + d_x, g_theta + d_theta), ()
 
         # Its loops run over 2 states and a few parameters, like the fused EKF step's.
-        _RK4_CHUNKS[key] = (model, make_chunk(one, options=chunk_options(fused_matmul)))
+        # Generated C first (`torchfric.native`; a batch of B runs is B copies of the step in
+        # one function), the Inductor scan where that cannot serve a shape.
+        chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True)
+        _RK4_CHUNKS[key] = (model, chunk)
     return _RK4_CHUNKS[key][1]  # type: ignore[index]
 
 
