@@ -320,7 +320,7 @@ def test_members_with_per_sample_outputs_run_one_at_a_time() -> None:
 
 def test_a_step_above_the_size_ceiling_takes_the_inductor_path(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """gcc's time grows faster than the code; past `_MAX_STATEMENTS` the scan is Inductor's."""
-    monkeypatch.setattr(native, "_MAX_STATEMENTS", 5)
+    monkeypatch.setattr(native.emit, "_MAX_STATEMENTS", 5)
 
     def fn(x, c):  # type: ignore[no-untyped-def]
         x1 = torch.tanh(x * c + 1.0) * c
