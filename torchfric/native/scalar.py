@@ -257,21 +257,21 @@ def _where(c: Scalar, a: Scalar, b: Scalar) -> Scalar:
     return c.graph.node("?:", (_to(c, "b"), a, b), dt)
 
 
-def _maximum(a: Scalar, b: Scalar) -> Scalar:
-    # NaN-propagating like torch.maximum
-    dt = _promote(a, b)
-    a, b = _to(a, dt), _to(b, dt)
-    if _const(a) and _const(b):
-        return math.nan if math.isnan(a) or math.isnan(b) else max(a, b)
-    return _graph_of(a, b).node("max", (a, b), dt)
+def _extremum(op: str, pick: Callable[[Any, Any], Any]) -> Callable[[Scalar, Scalar], Scalar]:
+    """Elementwise "max" or "min", NaN-propagating like torch.maximum / torch.minimum."""
+
+    def f(a: Scalar, b: Scalar) -> Scalar:
+        dt = _promote(a, b)
+        a, b = _to(a, dt), _to(b, dt)
+        if _const(a) and _const(b):
+            return math.nan if math.isnan(a) or math.isnan(b) else pick(a, b)
+        return _graph_of(a, b).node(op, (a, b), dt)
+
+    return f
 
 
-def _minimum(a: Scalar, b: Scalar) -> Scalar:
-    dt = _promote(a, b)
-    a, b = _to(a, dt), _to(b, dt)
-    if _const(a) and _const(b):
-        return math.nan if math.isnan(a) or math.isnan(b) else min(a, b)
-    return _graph_of(a, b).node("min", (a, b), dt)
+_maximum = _extremum("max", max)
+_minimum = _extremum("min", min)
 
 
 def _sign(a: Scalar) -> Scalar:
