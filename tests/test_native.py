@@ -331,3 +331,15 @@ def test_a_step_above_the_size_ceiling_takes_the_inductor_path(monkeypatch) -> N
     assert chunk.path in ("inductor", "eager") and "scalar operations" in chunk.why_not_native[0]
     expect = torch.tanh(torch.tanh(torch.ones(3) * 0.5 + 1.0) * 0.5 * 0.5 + 1.0) * 0.5
     torch.testing.assert_close(x, expect, rtol=1e-15, atol=0)
+
+
+def test_tensors_off_the_cpu_are_refused_before_any_pointer_is_taken() -> None:
+    """Generated C reads raw CPU pointers: a tensor elsewhere (here the meta device, where a GPU
+    would be) must send the chunk to the torch paths, never into the library."""
+
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        return (x * c,), ()
+
+    meta = torch.ones(2, device="meta")
+    with pytest.raises(NativeUnavailable, match="runs on the CPU"):
+        make_native_chunk(fn)((meta,), (), torch.ones(3, dtype=torch.bool), (torch.tensor(0.5),))

@@ -5,7 +5,8 @@ that "parameter divergence can occur". An ensemble answers both at the cost of r
 K members, differing in their initial θ (random, physically plausible: every entry scaled by a
 log-uniform factor in ``[1/spread, spread]`` around the start, member 0 being the start itself)
 and in the scaling of the tuning (Q and R multiplied by factors from a grid), run through the
-same per-sample step, batched with `torch.func.vmap` and compiled once for the whole batch.
+same per-sample step, run as one batch: generated C by default (`torchfric.native`, four members
+per SIMD vector), else `torch.func.vmap` of the step compiled once for the whole batch.
 
 Each member is an independent iterative off-line EKF exactly as in `identify_ekf`: the same
 passes, per-experiment state reset, per-member early stop on the θ tolerance and per-member
@@ -195,9 +196,9 @@ def make_masked_step(
     ``chunk((x, P, good, fail_at, sum_e2, sum_nis, loglik), (j (C,), u (C,), y (C, m)),
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
-    (`torchfric.native`): each member's whole chunk runs as one loop of scalar code, members
-    split across threads; otherwise, or when that path cannot translate the model, the
-    Inductor scan of the vmapped step.
+    (`torchfric.native`): the step traced for one member, four members per SIMD vector, the
+    members split across the cores; otherwise, or when that path cannot translate the model,
+    the Inductor scan of the vmapped step.
     """
     mm = mm or matmul_for(2 + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)

@@ -8,19 +8,21 @@ the filter's speed limit. This module removes it without giving up autograd:
 1. **Trace.** The step (with its `torch.func` Jacobians) is traced once by
    `torch.fx.experimental.proxy_tensor.make_fx` into a graph of ATen operations with the shapes
    of one sample.
-2. **Scalarise.** The graph is evaluated on arrays of *symbols* (`numpy` object arrays holding
-   `_Sym` nodes), so views, broadcasts, reductions and products become a DAG of scalar
-   operations. Equal sub-expressions are shared; products with the constants 0 and 1 (identity
-   blocks, padding) are folded.
-3. **Emit and compile.** The DAG becomes one straight-line C function body inside a loop over
-   the chunk's samples (and, for ensembles, an outer loop over members split across threads).
-   It is compiled once with the system C compiler into a shared library kept in a cache folder
-   keyed by the source's hash, so later processes load it in milliseconds.
+2. **Scalarise** (`scalar`, `aten`). The graph is evaluated on arrays of *symbols* (`numpy`
+   object arrays holding `_Sym` nodes), so views, broadcasts, reductions and products become a
+   DAG of scalar operations. Equal sub-expressions are shared (commutative ones whatever their
+   operand order); products with the constants 0 and 1 (identity blocks, padding, and the
+   entries of Q, H, R that are exactly 0 or 1, `_structure`) are folded.
+3. **Emit and compile** (`emit`). The DAG becomes one straight-line C function body inside a
+   loop over the chunk's samples; for ensembles, four members per SIMD vector and the members
+   split across threads. It is compiled once with the system C compiler into a shared library
+   kept in a cache folder keyed by the source's hash, so later processes only re-trace.
 
 The arithmetic is the traced graph's, operation by operation, in IEEE double precision (no
 fast-math): results agree with the eager step to rounding. `make_native_chunk` has the calling
 convention of `torchfric.ekf.make_chunk`; anything it cannot translate (an operation outside its
-table, no C compiler) raises `NativeUnavailable` and the caller falls back to the next path.
+table, no C compiler, tensors off the CPU, a step too large to compile quickly) raises
+`NativeUnavailable` and the caller falls back to the next path.
 """
 
 from __future__ import annotations
@@ -154,15 +156,20 @@ def make_native_chunk(
 
     With `members`, every carry tensor and each const flagged in `member_consts` has a leading
     member axis K; `fn` is traced for one member (that axis kept at size 1) and the members run
-    independently, split across the cores (`_threads`). Per-sample outputs then
-    have shape ``(C, K, ...)``, as the scan of the batched function gives them. Raises `NativeUnavailable` (before touching anything) when the
-    function cannot be translated.
+    independently, split across the cores (`_threads`). Per-sample outputs then have shape
+    ``(C, K, ...)``, as the scan of the batched function gives them. Raises
+    `NativeUnavailable` (before touching anything) when the function cannot be translated.
     """
     built: dict[tuple, tuple[ctypes.CDLL, list, list, int]] = {}
     failed: dict[tuple, NativeUnavailable] = {}
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
         carry, xs, consts = tuple(carry), tuple(xs), tuple(consts)
+        off_cpu = {str(t.device) for t in (*carry, *xs, *consts, valid) if t.device.type != "cpu"}
+        if off_cpu:
+            raise NativeUnavailable(
+                f"tensors on {sorted(off_cpu)}: the generated code runs on the CPU"
+            )
         flags = tuple(member_consts) + (False,) * (len(consts) - len(member_consts))
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
