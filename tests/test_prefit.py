@@ -100,7 +100,9 @@ def _lm_one_start(model, theta0, q, v, a, u, iterations, v_stick, rows):  # type
         JtJ, g = J.T @ J, J.T @ r
         improved, rel = False, 0.0
         for _ in range(10):
-            step = torch.linalg.solve(JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12)), -g)
+            step = torch.linalg.solve(
+                JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12)), -g
+            )
             cand = torch.maximum(torch.minimum(theta + step, hi), lo)
             r_new = residual(cand)
             c_new = float(r_new @ r_new)
@@ -115,11 +117,20 @@ def _lm_one_start(model, theta0, q, v, a, u, iterations, v_stick, rows):  # type
 
 
 @pytest.mark.parametrize("kind", ["tanh", "polytopic"])
-def test_batched_levenberg_marquardt_equals_one_start_at_a_time(identification, kind: str) -> None:
+def test_batched_levenberg_marquardt_equals_one_start_at_a_time(
+    identification, kind: str, monkeypatch
+) -> None:
     """All friction starts in one batch give each start's own LM result (the pre-fit's speed-up
-    must not couple the starts), and the per-sample Jacobian equals forward mode's."""
+    must not couple the starts), and the per-sample Jacobian equals forward mode's. Here with
+    the torch rows (no C compiler), against an independent one-start LM."""
+    import importlib
+
+    from torchfric import native
     from torchfric.prefit import _levenberg_marquardt, _linear_skeleton, _regression_data, _starts
 
+    monkeypatch.setattr(native, "compiler", lambda: None)
+    # and no generated rows kept from earlier pre-fits of the same structure
+    monkeypatch.setattr(importlib.import_module("torchfric.prefit"), "_ROW_CHUNKS", {})
     arm = ArmModel(make_friction(kind, 3), c_m=16.0)
     q, v, a, u = _regression_data([identification], 50.0, 0.02)
     v_stick = 0.02 * float(v.abs().max())
@@ -137,3 +148,47 @@ def test_batched_levenberg_marquardt_equals_one_start_at_a_time(identification, 
         torch.testing.assert_close(got[j], theta, rtol=1e-7, atol=1e-9)
         assert float(costs[j]) == pytest.approx(cost, rel=1e-9)
         assert int(used[j]) == its
+
+
+@pytest.mark.parametrize("kind", ["tanh", "polytopic"])
+def test_generated_rows_equal_torch_rows_and_keep_the_starts_apart(
+    identification, kind: str
+) -> None:
+    """The default rows (generated C, `_native_rows`) equal `vmap(grad)`'s to rounding, and the
+    batched LM on them still gives each start what it gives alone."""
+    from torch.func import grad, vmap
+
+    from torchfric import native
+    from torchfric.prefit import (
+        _levenberg_marquardt,
+        _linear_skeleton,
+        _native_rows,
+        _regression_data,
+        _starts,
+    )
+
+    if native.compiler() is None:
+        pytest.skip("no C compiler here")
+    arm = ArmModel(make_friction(kind, 3), c_m=16.0)
+    q, v, a, u = _regression_data([identification], 50.0, 0.02)
+    v_stick = 0.02 * float(v.abs().max())
+    starts = _starts(arm, _linear_skeleton(arm, q, v, a, u), float(torch.quantile(v.abs(), 0.95)))
+    thetas = torch.stack([s.get_theta().detach() for s in starts])
+    model, x = starts[0], torch.stack([q, v], dim=-1)
+
+    def one(theta, x1, u1, a1):  # type: ignore[no-untyped-def]
+        _, p = model.split(theta)
+        return (model.vector_field(x1, u1, theta)[1] - a1) * p["inertia"]
+
+    torch_rows = vmap(vmap(grad(one), in_dims=(None, 0, 0, 0)), in_dims=(0, None, None, None))
+    torch_values = vmap(vmap(one, in_dims=(None, 0, 0, 0)), in_dims=(0, None, None, None))
+    never = lambda th: pytest.fail("the generated rows fell back to torch")  # noqa: E731
+    jac, res = _native_rows(model, one, x, u, a, never, never)
+    J = torch_rows(thetas, x, u, a)
+    torch.testing.assert_close(jac(thetas), J, rtol=1e-10, atol=1e-12 * float(J.abs().max()))
+    torch.testing.assert_close(res(thetas), torch_values(thetas, x, u, a), rtol=1e-12, atol=1e-15)
+    got, costs, used = _levenberg_marquardt(model, thetas, q, v, a, u, 12, v_stick)
+    for j in range(thetas.shape[0]):
+        alone, cost, its = _levenberg_marquardt(model, thetas[j : j + 1], q, v, a, u, 12, v_stick)
+        torch.testing.assert_close(got[j], alone[0], rtol=1e-12, atol=1e-14)
+        assert int(used[j]) == int(its[0])

@@ -64,6 +64,10 @@ def _arr_dtype(a: np.ndarray) -> str:
     return _promote(*a.flat) if a.size else "d"
 
 
+def _select(a: np.ndarray, dim: int, i: int) -> np.ndarray:
+    return np.take(a, i, axis=dim).copy() if a.ndim > 1 else _arr(a[i])
+
+
 def _slice(a: np.ndarray, dim: int = 0, start: Any = None, end: Any = None, step: int = 1):
     idx = [slice(None)] * a.ndim
     idx[dim] = slice(start, end, step)
@@ -310,6 +314,8 @@ _OPS: dict[str, Callable[..., Any]] = {
     "aten.clamp_min.default": lambda a, m: _lift(_maximum, 2)(a, _arr(m)),
     "aten.clamp_max.default": lambda a, m: _lift(_minimum, 2)(a, _arr(m)),
     "aten.where.self": _where_a,
+    "aten.masked_fill.Scalar": lambda a, mask, v: _where_a(mask, _arr(v), a),
+    "aten.masked_fill.Tensor": lambda a, mask, v: _where_a(mask, v, a),
     "aten.where.ScalarOther": lambda c, a, b: _where_a(c, a, _arr(b)),
     "aten.where.ScalarSelf": lambda c, a, b: _where_a(c, _arr(a), b),
     "aten.lt.Tensor": _lift(_compare("<"), 2),
@@ -345,9 +351,8 @@ _OPS: dict[str, Callable[..., Any]] = {
     "aten.amin.default": _amin,
     "aten.sum.default": _sum,
     "aten.sum.dim_IntList": _sum,
-    "aten.select.int": lambda a, dim, i: (
-        np.take(a, i, axis=dim).copy() if a.ndim > 1 else _arr(a[i])
-    ),
+    "aten.unbind.int": lambda a, dim=0: [_select(a, dim, i) for i in range(a.shape[dim])],
+    "aten.select.int": _select,
     "aten.slice.Tensor": _slice,
     "aten.slice_backward.default": _slice_backward,
     "aten.select_backward.default": _select_backward,

@@ -96,7 +96,9 @@ def _source(
     try:
         with warnings.catch_warnings():  # tracing touches module reprs; not the user's business
             warnings.simplefilter("ignore")
-            gm = make_fx(flat)(*args)
+            # functionalised: in-place operations (autograd's backward of maximum, say)
+            # become their out-of-place forms, which the symbol arrays can evaluate
+            gm = make_fx(torch.func.functionalize(flat, remove="mutations"))(*args)
     except Exception as exc:  # noqa: BLE001 - whatever stops tracing stops this path
         raise NativeUnavailable(f"tracing failed: {exc}") from exc
     graph = _Graph()
