@@ -78,6 +78,19 @@ def initial(model: ArmModel, exp) -> EKFState:  # type: ignore[no-untyped-def]
     return EKFState(x, P)
 
 
+def peak_rss_mb() -> float:
+    """This process's peak resident memory: VmHWM where /proc has it (ru_maxrss on Linux
+    carries the parent's peak over fork and exec, so a child would report the parent's)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def time_pass(model: ArmModel, exp, n: int, compile: bool, native: bool = True):  # type: ignore[no-untyped-def]
     """(steps/s, first-call seconds, path) of `run_pass` over n samples; path is the chunk's
     ("native", "inductor", "eager")."""
@@ -297,8 +310,7 @@ def main() -> None:
             exp = make_experiment(t, exp.u.repeat(reps), exp.q.repeat(reps), qdot=exp.qdot.repeat(reps))
             exp = exp.slice(0, args.samples)
         row = identification(model, exp, args.identify_only)
-        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        print(json.dumps([*row, rss, exp.n]))
+        print(json.dumps([*row, peak_rss_mb(), exp.n]))
         return
     torch.set_num_threads(1)
     # The first calls below include the C build: build into a folder of this run's own.
