@@ -235,7 +235,7 @@ def _levenberg_marquardt(
     # J's rows are per-sample gradients: one batched reverse pass over the samples
     # (`vmap(grad)`) gives the same Jacobian as `jacfwd` (to rounding) 3–4× faster here, where
     # forward mode through the friction falls back to Python decompositions. Faster still
-    # (polytopic(3): 1.0 → 0.3 s for the whole pre-fit), the same per-sample gradient and
+    # (polytopic(3): 1.0 → 0.47 s for the whole pre-fit), the same per-sample gradient and
     # residual traced into generated C (`_native_rows`), with these as the fallback.
     per_sample = vmap(
         vmap(grad(sample_residual), in_dims=(None, 0, 0, 0)), in_dims=(0, None, None, None)

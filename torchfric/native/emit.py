@@ -281,7 +281,7 @@ def _vector_expr(graph: _Graph, i: int, leaf: Callable[[str, int], str]) -> str:
                 return "bi(-1)" if a else "bi(0)"
             return f"bd({_literal(a, 'd')})" if dtype == "d" else f"bi({_literal(a, 'i')})"
         v = f"v{a.id}"
-        if a.dtype == dtype or {a.dtype, dtype} <= {"i", "b"} and dtype != "b" and a.dtype != "b":
+        if a.dtype == dtype:
             return v
         return _vector_cast(v, a.dtype, dtype)
 
