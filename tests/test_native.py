@@ -343,3 +343,27 @@ def test_tensors_off_the_cpu_are_refused_before_any_pointer_is_taken() -> None:
     meta = torch.ones(2, device="meta")
     with pytest.raises(NativeUnavailable, match="runs on the CPU"):
         make_native_chunk(fn)((meta,), (), torch.ones(3, dtype=torch.bool), (torch.tensor(0.5),))
+
+
+def test_a_compiler_that_rejects_the_fast_flags_gets_the_portable_ones(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """-march=native is not accepted everywhere: the build retries without it, and a compiler
+    that fails on both says why (and the chunk falls back)."""
+    monkeypatch.setattr(native, "_FLAGS", [*native._PORTABLE_FLAGS, "-fno-such-flag-here"])
+
+    def fn(x, c):  # type: ignore[no-untyped-def]
+        return (torch.sin(x) * c,), ()
+
+    args = ((torch.ones(2),), (), torch.ones(3, dtype=torch.bool), (torch.tensor(0.5),))
+    (x,), _ = make_native_chunk(fn)(*args)
+    expect = torch.ones(2)
+    for _ in range(3):
+        expect = torch.sin(expect) * 0.5
+    torch.testing.assert_close(x, expect, rtol=1e-15, atol=0)
+    monkeypatch.setattr(native, "_PORTABLE_FLAGS", native._FLAGS)
+    monkeypatch.setattr(native, "_LOADED", {})
+
+    def other(x, c):  # type: ignore[no-untyped-def]
+        return (torch.cos(x) * c,), ()
+
+    with pytest.raises(NativeUnavailable, match="C compiler failed: .*no-such-flag"):
+        make_native_chunk(other)(*args)

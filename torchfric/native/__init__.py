@@ -69,7 +69,10 @@ def compiler() -> str | None:
 
 # -march=native: 1.6x faster than the generic target on the step (tanh(3)); no fast-math and no
 # contraction into FMAs, so the arithmetic stays the traced graph's, operation by operation.
+# A compiler that rejects a flag of the first set (-march=native on some ARM toolchains) gets
+# the second.
 _FLAGS = ["-O2", "-march=native", "-fno-fast-math", "-ffp-contract=off", "-fPIC", "-shared"]
+_PORTABLE_FLAGS = ["-O2", "-fno-fast-math", "-ffp-contract=off", "-fPIC", "-shared"]
 _LOADED: dict[str, ctypes.CDLL] = {}
 _LOCK = threading.Lock()
 
@@ -89,36 +92,52 @@ def _cpu() -> str:
 
 
 def _build(source: str) -> ctypes.CDLL:
-    """Compile `source` once (cached on disk by hash) and load it."""
+    """Compile `source` once (cached on disk by the hash of source, flags, compiler and CPU)
+    and load it: with `_FLAGS`, or `_PORTABLE_FLAGS` where the compiler rejects those."""
     cc = compiler()
     if cc is None:
         raise NativeUnavailable("no C compiler found (set CC)")
-    ident = " ".join([*_FLAGS, cc, sys.platform, _cpu()])
-    key = hashlib.sha256((source + ident).encode()).hexdigest()[:24]
-    with _LOCK:
-        if key in _LOADED:
+    errors: list[str] = []
+    for flags in (_FLAGS, _PORTABLE_FLAGS):
+        ident = " ".join([*flags, cc, sys.platform, _cpu()])
+        key = hashlib.sha256((source + ident).encode()).hexdigest()[:24]
+        with _LOCK:
+            if key not in _LOADED:
+                lib = cache_dir() / f"step_{key}.so"
+                if not lib.exists():
+                    failure = _compile(cc, flags, source, lib)
+                    if failure:
+                        errors.append(failure)
+                        continue
+                handle = ctypes.CDLL(str(lib))
+                handle.torchfric_chunk.argtypes = [
+                    *[ctypes.c_int64] * 4,
+                    ctypes.POINTER(ctypes.c_void_p),
+                ]
+                handle.torchfric_chunk.restype = None
+                _LOADED[key] = handle
             return _LOADED[key]
-        folder = cache_dir()
-        lib = folder / f"step_{key}.so"
-        if not lib.exists():
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                    src = Path(tmp) / "step.c"
-                    src.write_text(source)
-                    out = Path(tmp) / "step.so"
-                    run = subprocess.run([cc, *_FLAGS, str(src), "-o", str(out), "-lm"],
-                                         capture_output=True, text=True)  # fmt: skip
-                    if run.returncode != 0:
-                        raise NativeUnavailable(f"C compiler failed: {run.stderr.strip()[:300]}")
-                    os.replace(out, lib)  # atomic: other processes see all of it or nothing
-            except OSError as exc:
-                raise NativeUnavailable(f"cannot build in {folder}: {exc}") from exc
-        handle = ctypes.CDLL(str(lib))
-        handle.torchfric_chunk.argtypes = [*[ctypes.c_int64] * 4, ctypes.POINTER(ctypes.c_void_p)]
-        handle.torchfric_chunk.restype = None
-        _LOADED[key] = handle
-        return handle
+    raise NativeUnavailable(f"C compiler failed: {errors[-1]}")
+
+
+def _compile(cc: str, flags: list[str], source: str, lib: Path) -> str | None:
+    """Build `source` into `lib` (atomically: other processes see all of it or nothing); the
+    compiler's complaint when it fails."""
+    folder = lib.parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=folder) as tmp:
+            src = Path(tmp) / "step.c"
+            src.write_text(source)
+            out = Path(tmp) / "step.so"
+            run = subprocess.run([cc, *flags, str(src), "-o", str(out), "-lm"],
+                                 capture_output=True, text=True)  # fmt: skip
+            if run.returncode != 0:
+                return run.stderr.strip()[:300] or f"{cc} exited with {run.returncode}"
+            os.replace(out, lib)
+    except OSError as exc:
+        raise NativeUnavailable(f"cannot build in {folder}: {exc}") from exc
+    return None
 
 
 def _structure(k: Tensor, batched: bool) -> dict[int, float]:
