@@ -55,8 +55,8 @@ def _dtype_code(dtype: torch.dtype | None, default: str = "d") -> str:
         return "b"
     if dtype in (torch.int64, torch.int32, torch.int16, torch.int8, torch.uint8):
         return "i"
-    if dtype in (torch.float64, torch.float32):
-        return "d"
+    if dtype == torch.float64:
+        return "d"  # (float32 would need its own rounding: the torch paths serve it)
     raise NativeUnavailable(f"dtype {dtype}")
 
 

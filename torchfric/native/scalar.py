@@ -63,19 +63,6 @@ class _Sym:
     def __init__(self, graph: _Graph, id: int, dtype: str) -> None:
         self.graph, self.id, self.dtype = graph, id, dtype
 
-    # numpy's object-array reductions (np.sum) use these operators.
-    def __add__(self, o: Any) -> Any:
-        return _add(self, o)
-
-    def __radd__(self, o: Any) -> Any:
-        return _add(o, self)
-
-    def __mul__(self, o: Any) -> Any:
-        return _mul(self, o)
-
-    def __rmul__(self, o: Any) -> Any:
-        return _mul(o, self)
-
 
 Scalar = Any  # _Sym | bool | int | float
 
