@@ -21,7 +21,9 @@ import hashlib
 import math
 import os
 import pathlib
+import stat
 import warnings
+import zipfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -38,6 +40,7 @@ __all__ = [
     "validate_experiment",
     "make_experiment",
     "load_experiment",
+    "data_warnings",
     "save_csv",
     "highpass_derivative",
     "zero_phase_derivative",
@@ -54,9 +57,17 @@ _COLUMNS = ("t", "u", "q", "qdot")
 
 
 # --------------------------------------------------------------------------- conversion helpers
+_ECHO_LIMIT = 200  # at most this many characters of a library's message or a bad value
+
+
+def _clip(text: str, limit: int = _ECHO_LIMIT) -> str:
+    """`text` cut to `limit` characters (an ellipsis marks the cut)."""
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
 def _one_line(exc: BaseException) -> str:
-    """The exception text on one line (for wrapping library errors)."""
-    return " ".join(str(exc).split()) or type(exc).__name__
+    """The exception text on one line, at most `_ECHO_LIMIT` characters (for wrapping errors)."""
+    return _clip(" ".join(str(exc).split()) or type(exc).__name__)
 
 
 def _as_numpy(x: ArrayLike, what: str) -> np.ndarray:
@@ -73,7 +84,7 @@ def _as_numpy(x: ArrayLike, what: str) -> np.ndarray:
         raise TorchfricError(
             f"{what} has dtype {arr.dtype}; expected real numbers (a float tensor or array)"
         )
-    return arr.astype(np.float64)
+    return arr.astype(np.float64, copy=False)  # no copy of float64 data: callers only read it
 
 
 def _as_tensor(arr: ArrayLike) -> Tensor:
@@ -335,21 +346,63 @@ def make_experiment(
 
 
 # --------------------------------------------------------------------------- files
+_HEAD_BYTES = 1 << 16  # the binary-data check looks at the first 64 KiB
+_MAX_LINE = 1 << 20  # no header or comment line is longer than 1 MiB
+_CSV_FIX = (
+    "give a UTF-8 text file with a header line such as t,u,q and one row of numbers per sample"
+)
+
+
+def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
+    byte = exc.object[exc.start : exc.start + 1].hex() if exc.object else "?"
+    return TorchfricError(
+        f"{path}: cannot read the file: byte 0x{byte} is not UTF-8 text (a binary file, or text "
+        "in another encoding such as Latin-1); re-save it as UTF-8 (plain ASCII numbers)"
+    )
+
+
+def _find_header(path: pathlib.Path) -> tuple[int, str] | None:
+    """(index, text) of the first line that is neither blank nor a '#' comment, or None.
+
+    Reads line by line up to that line only (the body is parsed by `np.loadtxt`); lines are
+    split like `np.loadtxt` splits them (universal newlines), so the index is its `skiprows`.
+    """
+    with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
+        for i, line in enumerate(iter(lambda: f.readline(_MAX_LINE), "")):
+            if len(line) >= _MAX_LINE and not line.endswith("\n"):
+                raise TorchfricError(
+                    f"{path}: line {i + 1} is longer than {_MAX_LINE // 1024} KiB; this is not a "
+                    f"CSV with a header line; {_CSV_FIX}"
+                )
+            if line.strip() and not line.lstrip().startswith("#"):
+                return i, line.rstrip("\r\n")
+    return None
+
+
 def _read_csv(path: pathlib.Path) -> dict[str, np.ndarray]:
     """Header line of names, then comma-separated numbers; '#' starts a comment."""
     try:
-        with path.open(encoding="utf-8") as f:
-            lines = f.read().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
+        with path.open("rb") as f:
+            head = f.read(_HEAD_BYTES)
+        if not head:
+            raise TorchfricError(f"{path}: the file is empty (0 bytes); {_CSV_FIX}")
+        nul = head.find(b"\0")
+        if nul >= 0:
+            raise TorchfricError(
+                f"{path}: cannot read the file as CSV: it holds binary data (a NUL byte at "
+                f"offset {nul}), not text; {_CSV_FIX}"
+            )
+        found = _find_header(path)
+    except UnicodeDecodeError as exc:
+        raise _not_utf8(path, exc) from None
+    except OSError as exc:
         raise TorchfricError(f"{path}: cannot read the file ({_one_line(exc)})") from None
-    header_at = next(
-        (i for i, s in enumerate(lines) if s.strip() and not s.lstrip().startswith("#")), None
-    )
-    if header_at is None:
+    if found is None:
         raise TorchfricError(
             f"{path}: no header line; the first line must name columns, e.g. t,u,q"
         )
-    names = [s.strip().strip("\"'") for s in lines[header_at].split("#")[0].split(",")]
+    header_at, header = found
+    names = [s.strip().strip("\"'") for s in header.split("#")[0].split(",")]
     try:
         [float(s) for s in names]
     except ValueError:
@@ -358,18 +411,32 @@ def _read_csv(path: pathlib.Path) -> dict[str, np.ndarray]:
         raise TorchfricError(
             f"{path}: the first line holds numbers, not column names; add a header such as t,u,q"
         )
+    if len(names) == 1 and (";" in names[0] or "\t" in names[0]):
+        sep = "semicolon" if ";" in names[0] else "tab"
+        raise TorchfricError(
+            f"{path}: the header {_clip(names[0])!r} is {sep}-separated; torchfric reads "
+            "comma-separated files, so replace the separators with commas (t,u,q)"
+        )
     if len(set(names)) != len(names) or "" in names:
-        raise TorchfricError(f"{path}: header {names} has empty or repeated column names")
+        raise TorchfricError(
+            f"{path}: header {_clip(str(names))} has empty or repeated column names"
+        )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # numpy warns on an empty body; handled below
             data = np.loadtxt(
                 path, delimiter=",", comments="#", skiprows=header_at + 1, ndmin=2, encoding="utf-8"
             )
+    except UnicodeDecodeError as exc:  # a ValueError: before the generic parse error
+        raise _not_utf8(path, exc) from None
     except ValueError as exc:
         raise TorchfricError(
             f"{path}: cannot parse the data ({_one_line(exc)}); expected {len(names)} "
             "comma-separated numbers per row"
+        ) from None
+    except MemoryError:
+        raise TorchfricError(
+            f"{path}: not enough memory to parse the file; {_MEMORY_FIX}"
         ) from None
     if data.size == 0:
         raise TorchfricError(f"{path}: no data rows below the header; the file holds no samples")
@@ -382,6 +449,16 @@ def _read_csv(path: pathlib.Path) -> dict[str, np.ndarray]:
 
 def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
     fix = "save it with numpy.savez(path, t=..., u=..., q=...)"
+    try:
+        with path.open("rb") as f:
+            magic = f.read(6)
+    except OSError as exc:
+        raise TorchfricError(f"{path}: cannot read the file ({_one_line(exc)})") from None
+    if not magic.startswith((b"PK", b"\x93NUMPY")):  # a zip archive, or a single .npy
+        raise TorchfricError(
+            f"{path}: cannot read as .npz: it is no numpy archive (no zip signature at the start); "
+            f"{fix}"
+        )
     try:
         archive = np.load(path, allow_pickle=False)
         if not isinstance(archive, np.lib.npyio.NpzFile):
@@ -461,7 +538,158 @@ def _select(
                 f"{arr.shape}; 'name:k' needs a 2-D array with k < its number of columns"
             )
         arr = arr[:, index]
-    return arr.astype(np.float64)
+    return arr.astype(np.float64, copy=False)  # the Experiment copies it into a tensor
+
+
+# --------------------------------------------------------------------------- loading guards
+_KINDS: tuple[tuple[Callable[[int], bool], str], ...] = (
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+)
+
+# Peak memory of `load_experiment` / bytes of the arrays the reader returns, measured with
+# ru_maxrss in a fresh process on 19-50 MB files of 3 columns: CSV 2.06 (4.3 M rows "i,0,0") and
+# 2.08 (0.8 M rows of %.17g), .npz 2.09, .mat 2.11. np.loadtxt's own peak is 1.07-1.23 × its
+# result; the float64 tensors of the columns add 1 ×. Rounded up for the parser's temporaries.
+_LOAD_MEMORY_RATIO = 2.5
+# A CSV value takes at least 2 bytes (a digit and a separator) and becomes 8: at most 4 bytes of
+# arrays per byte of file. Above that bound the first `_SAMPLE_BYTES` give the real row length.
+_CSV_MAX_EXPANSION = 4
+_SAMPLE_BYTES = 1 << 20
+_MEMORY_FIX = (
+    "shorten the file (data.start/data.stop apply only after loading) or split it into several "
+    "files"
+)
+
+
+def _format_bytes(n: float) -> str:
+    for unit, scale in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= scale:
+            value = n / scale
+            return f"{value:.1f} {unit}" if value < 100 else f"{value:.0f} {unit}"
+    return f"{int(n)} B"
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        with open(path, encoding="ascii") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):  # absent, unreadable, or "max" (no limit)
+        return None
+
+
+def _available_memory() -> int | None:
+    """Bytes a new allocation can get: MemAvailable (else free pages), capped by a cgroup limit.
+
+    None when the platform tells neither (then no memory check is made).
+    """
+    avail: int | None = None
+    try:
+        with open("/proc/meminfo", "rb") as f:
+            for line in f:
+                if line.startswith(b"MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    if avail is None:
+        try:
+            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (AttributeError, ValueError, OSError):
+            return None
+    for limit_file, usage_file in (
+        ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),  # cgroup v2
+        (
+            "/sys/fs/cgroup/memory/memory.limit_in_bytes",
+            "/sys/fs/cgroup/memory/memory.usage_in_bytes",
+        ),
+    ):
+        limit, usage = _read_int(limit_file), _read_int(usage_file)
+        if limit is not None and usage is not None and limit < 1 << 60:
+            avail = min(avail, max(limit - usage, 0))
+    return avail
+
+
+def _csv_array_bytes(p: pathlib.Path, size: int) -> int:
+    """Bytes of the arrays a CSV of `size` bytes parses to, from the rows in its first MiB.
+
+    Falls back to the bound ``_CSV_MAX_EXPANSION · size`` when the sample shows no data row.
+    """
+    bound = _CSV_MAX_EXPANSION * size
+    try:
+        with p.open("rb") as f:
+            sample = f.read(_SAMPLE_BYTES)
+    except OSError:
+        return bound
+    lines = sample.split(b"\n")
+    if len(sample) < size:
+        lines = lines[:-1]  # the last line of the sample may be cut
+    rows = [s for s in lines if s.strip() and not s.lstrip().startswith(b"#")][1:]
+    if not rows or b"\0" in sample:
+        return bound
+    row_bytes = sum(len(s) + 1 for s in rows) / len(rows)
+    columns = max(s.count(b",") for s in rows) + 1
+    return min(bound, int(size / row_bytes * columns * 8))
+
+
+def _npz_array_bytes(p: pathlib.Path, size: int) -> int:
+    """Uncompressed size of the archive's members (its central directory), else the file size."""
+    try:
+        with zipfile.ZipFile(p) as zf:
+            return max(size, sum(info.file_size for info in zf.infolist()))
+    except Exception:  # not a zip archive: the reader reports it
+        return size
+
+
+def _check_regular_file(p: pathlib.Path) -> int:
+    """The size of `p` if it is a regular file (after links); else a one-line error.
+
+    Only `os.stat`: a FIFO is never opened (that would block until a writer comes).
+    """
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise TorchfricError(
+            f"{p}: file not found (working directory {os.getcwd()}); check the path"
+        ) from None
+    except OSError as exc:
+        raise TorchfricError(f"{p}: cannot access the file ({_one_line(exc)})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise TorchfricError(
+            f"{p}: is a directory; give the path of a {p.suffix} file (a regular file)"
+        )
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((text for test, text in _KINDS if test(st.st_mode)), "not a regular file")
+        raise TorchfricError(
+            f"{p}: is {kind}, not a data file; give a regular file (save the data to a "
+            f"{p.suffix} file first)"
+        )
+    return int(st.st_size)
+
+
+def _check_memory(p: pathlib.Path, size: int) -> None:
+    """Refuse up front a file whose load would need more memory than is available."""
+    available = _available_memory()
+    if available is None:
+        return
+    suffix = p.suffix.lower()
+    if suffix == ".csv":
+        if _CSV_MAX_EXPANSION * size * _LOAD_MEMORY_RATIO <= available:
+            return  # fits even at the densest text: nothing to read
+        array_bytes = _csv_array_bytes(p, size)
+    elif suffix == ".npz":
+        array_bytes = _npz_array_bytes(p, size)
+    else:  # .mat: arrays as large as the file (a compressed v7 file expands further)
+        array_bytes = size
+    need = array_bytes * _LOAD_MEMORY_RATIO
+    if need > available:
+        raise TorchfricError(
+            f"data file {p} is {_format_bytes(size)}: loading it needs about "
+            f"{_format_bytes(need)} of memory and {_format_bytes(available)} is available; "
+            f"{_MEMORY_FIX}"
+        )
 
 
 def load_experiment(
@@ -508,12 +736,12 @@ def load_experiment(
         raise TorchfricError(
             f"{p}: unsupported file type {p.suffix!r}; expected one of {sorted(_READERS)}"
         )
-    if p.is_dir():
-        raise TorchfricError(f"{p}: is a directory; give the path of a {p.suffix} file")
-    if not p.is_file():
+    size = _check_regular_file(p)  # before anything is opened: a FIFO would block
+    if size == 0:
         raise TorchfricError(
-            f"{p}: file not found (working directory {os.getcwd()}); check the path"
+            f"{p}: the file is empty (0 bytes); give a file holding the record (t, u, q columns)"
         )
+    _check_memory(p, size)
     table = _READERS[p.suffix.lower()](p)
     explicit = set(columns or {})
 
@@ -552,11 +780,12 @@ def load_experiment(
                 f"{p}: the time column has step {step:.9g} s but time_step = {time_step:.9g} s; "
                 "drop time_step or correct it"
             )
+    # the constructor copies each column into a tensor once (one copy, not two, at the peak)
     return Experiment(
-        t=_as_tensor(cols["t"]),
-        u=_as_tensor(cols["u"]),
-        q=_as_tensor(cols["q"]),
-        qdot=_as_tensor(cols["qdot"]) if "qdot" in cols else None,
+        t=cols["t"],  # type: ignore[arg-type]
+        u=cols["u"],  # type: ignore[arg-type]
+        q=cols["q"],  # type: ignore[arg-type]
+        qdot=cols.get("qdot"),  # type: ignore[arg-type]
         name=p.stem if name is None else name,
     )
 
@@ -691,3 +920,129 @@ def reconstruct_velocity(
         )
     cutoff = DEFAULT_CUTOFF_HZ[method] if cutoff_hz is None else cutoff_hz
     return VELOCITY_METHODS[method](q, dt, cutoff)
+
+
+# --------------------------------------------------------------------------- data warnings
+# Saturation: u at its exact minimum or maximum in more than this fraction of the samples ...
+_SATURATION_FRACTION = 0.01
+# ... reached gradually: the median distance of the samples next to those runs from the limit is
+# below this fraction of u's range (a clipped continuous signal: 0.002-0.005 for the rig's input
+# clipped at ±60 % of its peak, 0.12 at ±80 %, where the rig's breakaway kicks jump onto the
+# limit). A step / PRBS input jumps onto its levels from far away (the HSM150 torque steps: 1.0,
+# the whole range) and is not flagged; neither is an input of fewer than
+# `_SATURATION_MIN_LEVELS` distinct values (a few levels, by design).
+_SATURATION_APPROACH = 0.25
+_SATURATION_MIN_LEVELS = 20
+# Time units: only sample times of at least this many seconds (<= 20 Hz) are suspected ...
+_MS_MIN_STEP = 0.05
+# ... when a measured qdot is this many times the finite difference of q (1000 for t in ms) ...
+_MS_QDOT_RATIO = (300.0, 3000.0)
+# ... or, without qdot, when the velocity filter's cut-off is above Nyquist and q is smooth on
+# the scale of a sample: rms(Δ²q)/rms(Δq) ≈ ω·Δt (ω the motion's rms angular frequency) is below
+# this. Measured: 0.003-0.063 on the 1 kHz records (rig 0.027-0.063, EMPS 0.005, HSM150 0.003),
+# 0.28 on the 40 Hz unbalanced disc; a genuine ≤ 20 Hz servo record moving at ≥ 0.5 Hz exceeds it.
+_MS_SMOOTHNESS = 0.15
+# ... or that ratio, read as a frequency ω/2π = ratio/(2π·Δt), puts the motion below 0.02 Hz (a
+# period over 50 s; servo test motions are faster). t in ms divides it by 1000: rig 0.0066 Hz,
+# EMPS 0.0007, HSM150 0.0005, the disc (genuinely 40 Hz, ratio 0.28) 0.0018.
+_MS_MOTION_HZ = 0.02
+
+
+def _saturation_warnings(exp: Experiment) -> list[str]:
+    u = exp.u.numpy()
+    if u.size < 2 or not np.all(np.isfinite(u)):
+        return []
+    lo, hi = float(u.min()), float(u.max())
+    span = hi - lo
+    if not span > 0 or np.unique(u).size < _SATURATION_MIN_LEVELS:
+        return []
+    out = []
+    for which, value in (("minimum", lo), ("maximum", hi)):
+        at = u == value
+        count = int(at.sum())
+        if count <= _SATURATION_FRACTION * u.size:
+            continue
+        edge = np.flatnonzero(at[1:] != at[:-1])  # at[k] != at[k+1]
+        outside = np.where(at[edge], u[edge + 1], u[edge])  # the neighbour off the limit
+        approach = float(np.median(np.abs(outside - value))) / span
+        if approach > _SATURATION_APPROACH:
+            continue  # jumps onto the level: a step input, not a clip
+        out.append(
+            f"{exp.name}: the input u sits at its exact {which} {value:.6g} in "
+            f"{count / u.size:.1%} of the samples ({count} of {u.size}), as a clipped or "
+            "saturated signal does; remove the saturated segments or raise the amplifier's "
+            "limit, because identification assumes the applied input equals the recorded one"
+        )
+    return out
+
+
+def _time_unit_warning(exp: Experiment, velocity: str, cutoff_hz: float | None) -> str | None:
+    dt = exp.dt
+    if not (math.isfinite(dt) and dt >= _MS_MIN_STEP):
+        return None
+    q = exp.q.numpy()
+    if not np.all(np.isfinite(q)) or q.size < 3:
+        return None
+    evidence = None
+    if exp.qdot is not None:
+        qdot = exp.qdot.numpy()
+        fd = np.gradient(q, dt)
+        if not np.all(np.isfinite(qdot)) or not np.any(fd) or not np.any(qdot):
+            return None
+        ratio = math.sqrt(float(np.mean(qdot**2)) / float(np.mean(fd**2)))
+        if float(np.corrcoef(qdot, fd)[0, 1]) > 0.5 and (
+            _MS_QDOT_RATIO[0] <= ratio <= _MS_QDOT_RATIO[1]
+        ):
+            evidence = f"the measured qdot is {ratio:.0f} times the finite difference of q"
+    elif velocity in DEFAULT_CUTOFF_HZ:
+        cutoff = DEFAULT_CUTOFF_HZ[velocity] if cutoff_hz is None else cutoff_hz
+        nyquist = 0.5 / dt
+        d1 = np.diff(q)
+        if cutoff >= nyquist and np.any(d1):
+            smooth = math.sqrt(float(np.mean(np.diff(d1) ** 2)) / float(np.mean(d1**2)))
+            motion_hz = smooth / (2.0 * math.pi * dt)
+            if smooth < _MS_SMOOTHNESS or motion_hz < _MS_MOTION_HZ:
+                evidence = (
+                    f"the {velocity} velocity cut-off {cutoff:g} Hz is above the Nyquist "
+                    f"frequency {nyquist:g} Hz, and q moves as if sampled much faster: rms "
+                    f"second/first difference {smooth:.3g}, a motion at {motion_hz:.2g} Hz"
+                )
+    if evidence is None:
+        return None
+    return (
+        f"{exp.name}: sample time {dt:g} s ({1 / dt:g} Hz) looks like milliseconds in a seconds "
+        f"column ({evidence}); convert the t column to seconds (t/1000)"
+    )
+
+
+def data_warnings(
+    exp: Experiment, *, velocity: str = "highpass", velocity_cutoff_hz: float | None = None
+) -> list[str]:
+    """Plain one-sentence warnings about data that would almost certainly give a wrong model.
+
+    Pure: reads `exp` only. Empty list when nothing is suspicious. Checks:
+
+    - saturation: u sits at its exact minimum or maximum in more than 1 % of the samples and
+      reaches that value gradually (the samples next to those runs lie, in the median, within
+      25 % of u's range of it; u has at least 20 distinct values). Step and PRBS inputs, which
+      jump onto their few levels, are not flagged.
+    - time units: a sample time of at least 0.05 s (≤ 20 Hz) that contradicts the data: a
+      measured ``qdot`` 300-3000 times the finite difference of q (t in ms makes it 1000), or,
+      without ``qdot``, a velocity cut-off (`velocity`, `velocity_cutoff_hz`, as in
+      `Experiment.with_velocity`) at or above the Nyquist frequency ``1/(2·dt)`` together with
+      a position that moves as if sampled much faster: ``r = rms(Δ²q)/rms(Δq) < 0.15`` (q smooth
+      on the scale of one sample) or ``r/(2π·dt) < 0.02 Hz`` (a motion slower than any servo
+      test's).
+
+    Args:
+        exp: the record as loaded (before velocity reconstruction, so a measured qdot is seen).
+        velocity: "highpass", "zero_phase" or "measured" (the config's ``data.velocity``).
+        velocity_cutoff_hz: the reconstruction's cut-off; None = the method's default.
+    """
+    if not isinstance(exp, Experiment):
+        raise TorchfricError(f"data_warnings: expected an Experiment, got {type(exp).__name__}")
+    out = _saturation_warnings(exp)
+    unit = _time_unit_warning(exp, velocity, velocity_cutoff_hz)
+    if unit is not None:
+        out.append(unit)
+    return out
