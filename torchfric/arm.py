@@ -23,7 +23,72 @@ from torch import Tensor, nn
 from .errors import TorchfricError
 from .friction import Friction, make_friction
 
-__all__ = ["ArmModel"]
+__all__ = ["ArmModel", "arm_field", "arm_friction"]
+
+
+# The arm's physics, written once. `ArmModel.dynamics` (simulation, EKF, output error, pre-fit)
+# and `ArmModel.friction_torque` call these, and so does the TorchScript export
+# (`torchfric.export`), which compiles them with the module: a term added here reaches every
+# consumer. They are TorchScript-compatible plain functions (not scripted: autograd, torch.func
+# and the native tracer see ordinary torch operations). Disabled terms are ``None`` (not zero),
+# so that a model without a term computes exactly what it always did.
+
+
+def arm_field(
+    x: Tensor,
+    u: Tensor,
+    black_box: Tensor,
+    c_m: Tensor,
+    inertia: Tensor,
+    viscous: Tensor | None = None,
+    offset: Tensor | None = None,
+    gravity: Tensor | None = None,
+    asymmetric: Tensor | None = None,
+) -> Tensor:
+    """The vector field ``ẋ = [q̇, (c_m u − C(q̇) − b q̇ − offset − g_c sin q − a |q̇|) / M]``.
+
+    Args:
+        x: states `(..., 2)` ``[q, q̇]``.
+        u: input, broadcast against ``x[..., 0]``.
+        black_box: ``C(q̇)`` at ``x[..., 1]`` (the friction module's odd curve).
+        c_m, inertia: motor constant and M (physical values).
+        viscous, offset, gravity, asymmetric: b, the constant offset, ``g_c`` and ``a`` of the
+            enabled white-box terms; ``None`` for a term the model does not have.
+
+    Returns:
+        ``ẋ`` `(..., 2)`.
+    """
+    q = x[..., 0]
+    v = x[..., 1]
+    torque = c_m * u - black_box
+    if viscous is not None:
+        torque = torque - viscous * v
+    if offset is not None:
+        torque = torque - offset
+    if gravity is not None:
+        torque = torque - gravity * torch.sin(q)
+    if asymmetric is not None:
+        torque = torque - asymmetric * v.abs()
+    return torch.stack([v, torque / inertia], dim=-1)
+
+
+def arm_friction(
+    v: Tensor,
+    black_box: Tensor,
+    viscous: Tensor | None = None,
+    offset: Tensor | None = None,
+    asymmetric: Tensor | None = None,
+) -> Tensor:
+    """Total velocity-dependent friction ``C(v) + b v + offset + a |v|`` (terms as in `arm_field`;
+    `black_box` is ``C(v)``)."""
+    out = black_box
+    if viscous is not None:
+        out = out + viscous * v
+    if offset is not None:
+        out = out + offset
+    if asymmetric is not None:
+        out = out + asymmetric * v.abs()
+    return out
 
 
 class ArmModel(nn.Module):
@@ -198,17 +263,17 @@ class ArmModel(nn.Module):
     ) -> Tensor:
         """`vector_field` with θ already split into physical dicts (`split`): hoist the split out
         of inner loops, where θ is constant."""
-        q, v = x[..., 0], x[..., 1]
-        torque = arm["c_m"] * u - self.friction.evaluate(v, fric)
-        if "viscous" in arm:
-            torque = torque - arm["viscous"] * v
-        if "offset" in arm:
-            torque = torque - arm["offset"]
-        if "gravity" in arm:
-            torque = torque - arm["gravity"] * torch.sin(q)
-        if "asymmetric" in arm:
-            torque = torque - arm["asymmetric"] * v.abs()
-        return torch.stack([v, torque / arm["inertia"]], dim=-1)
+        return arm_field(
+            x,
+            u,
+            self.friction.evaluate(x[..., 1], fric),
+            arm["c_m"],
+            arm["inertia"],
+            arm.get("viscous"),
+            arm.get("offset"),
+            arm.get("gravity"),
+            arm.get("asymmetric"),
+        )
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         return self.vector_field(x, u)
@@ -217,14 +282,13 @@ class ArmModel(nn.Module):
         """Total velocity-dependent friction ``b v + C(v) + offset [+ a |v|]`` at velocities `v`,
         for the module's own θ or a given θ `(k,)` (estimation coordinates)."""
         fric, arm = self.split(self.theta_vector() if theta is None else theta)
-        out = self.friction.evaluate(v, fric)
-        if "viscous" in arm:
-            out = out + arm["viscous"] * v
-        if "offset" in arm:
-            out = out + arm["offset"]
-        if "asymmetric" in arm:
-            out = out + arm["asymmetric"] * v.abs()
-        return out
+        return arm_friction(
+            v,
+            self.friction.evaluate(v, fric),
+            arm.get("viscous"),
+            arm.get("offset"),
+            arm.get("asymmetric"),
+        )
 
     def max_slope(self, v_max: float, n: int = 401) -> float:
         """Largest ``|∂q̈/∂q̇|`` over ``|v| <= v_max`` [1/s]: the stiffness that limits explicit steps."""

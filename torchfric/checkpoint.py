@@ -12,7 +12,11 @@ A checkpoint is what `build_checkpoint` returns, saved with `save_checkpoint`::
 It contains nothing but tensors, str, int, float, bool, None, lists, tuples and dicts, so it loads
 with ``torch.load(path, weights_only=True)`` — the only way torchfric reads one (`read_checkpoint`).
 Files that would need full unpickling, truncated or corrupt files, and checkpoints of a newer
-format are refused with a one-line `TorchfricError`.
+format are refused with a one-line `TorchfricError`. A checkpoint of an older format is migrated
+on reading (`_FORMAT_MIGRATIONS`) or, where no migration exists, refused with one line naming the
+version found, the versions read and the fix. The stored config is migrated to the current
+schema by `checkpoint_config` (keys that older torchfric versions wrote and the current schema
+rejects are dropped or normalised).
 
 Writes go to a temporary file in the target folder, are flushed and fsync'ed, then renamed over
 the target (`os.replace`) and the folder is fsync'ed: a crash at any moment leaves either the
@@ -28,14 +32,17 @@ import pathlib
 import pickle
 import secrets
 import zipfile
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from .arm import ArmModel
 from .errors import TorchfricError
+
+if TYPE_CHECKING:
+    from .config import Config
 
 __all__ = [
     "FORMAT",
@@ -44,12 +51,19 @@ __all__ = [
     "save_checkpoint",
     "read_checkpoint",
     "load_checkpoint",
+    "checkpoint_config",
     "sha256_file",
 ]
 
 FORMAT = "torchfric-checkpoint"
 FORMAT_VERSION = 1
-"""Bump when the layout changes incompatibly; readers refuse newer versions."""
+"""Bump when the layout changes incompatibly; readers refuse newer versions and migrate older
+ones through `_FORMAT_MIGRATIONS`."""
+
+_FORMAT_MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+"""Format ``v`` → a function that turns a format-``v`` checkpoint dict into format ``v + 1``
+(it sets ``format_version``). When FORMAT_VERSION is bumped, add the previous version here so
+that existing checkpoints keep loading; a version without a path to FORMAT_VERSION is refused."""
 
 _REQUIRED = ("model", "theta", "theta_names")
 _PLAIN = (str, int, float, bool, type(None))
@@ -266,6 +280,8 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
             f"({ckpt.get('torchfric_version', '?')}); this one reads format <= {FORMAT_VERSION}: "
             "upgrade torchfric"
         )
+    if version < FORMAT_VERSION:
+        ckpt = _migrate_format(ckpt, version, p)
     missing = [k for k in _REQUIRED if k not in ckpt]
     if missing:
         raise TorchfricError(f"{p} lacks {', '.join(missing)}; the checkpoint is incomplete")
@@ -292,3 +308,110 @@ def load_checkpoint(path: str | os.PathLike[str]) -> ArmModel:
         raise TorchfricError(f"{path}: theta is a {type(theta).__name__}, expected a tensor")
     model.set_theta(theta.to(torch.float64))
     return model
+
+
+def _oldest_readable() -> int:
+    """The oldest format version with a chain of migrations up to FORMAT_VERSION."""
+    v = FORMAT_VERSION
+    while v - 1 in _FORMAT_MIGRATIONS:
+        v -= 1
+    return v
+
+
+def _migrate_format(ckpt: dict[str, Any], version: int, path: pathlib.Path) -> dict[str, Any]:
+    """`ckpt` (format `version` < FORMAT_VERSION) migrated step by step to FORMAT_VERSION."""
+    oldest = _oldest_readable()
+    if version < oldest:
+        readable = str(FORMAT_VERSION) if oldest == FORMAT_VERSION else f"{oldest}-{FORMAT_VERSION}"
+        raise TorchfricError(
+            f"{path} has checkpoint format {version} (written by torchfric "
+            f"{ckpt.get('torchfric_version', '?')}); this torchfric ({_torchfric_version()}) reads "
+            f"format {readable} and cannot migrate format {version}: re-create it with torchfric "
+            "train from its config, or load it with the torchfric version that wrote it"
+        )
+    while version < FORMAT_VERSION:
+        try:
+            ckpt = _FORMAT_MIGRATIONS[version](dict(ckpt))
+        except TorchfricError:
+            raise
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise TorchfricError(
+                f"{path}: cannot migrate checkpoint format {version} to {version + 1} ({exc!r}); "
+                "the file is damaged or not a torchfric checkpoint"
+            ) from None
+        version += 1
+        ckpt["format_version"] = version
+    return ckpt
+
+
+# Estimator keys that older versions wrote for every method but that the current schema accepts
+# only with method = "ekf" (output error runs no ensemble): those versions stored their own
+# defaults there (ensemble = 0, ensemble_q_scales = ensemble_r_scales = [1.0]).
+_EKF_ONLY_KEYS = ("ensemble", "ensemble_spread", "ensemble_q_scales", "ensemble_r_scales")
+
+
+def checkpoint_config(raw: Mapping[str, Any]) -> Config:
+    """The config stored in checkpoint dict `raw` (`read_checkpoint`), migrated to the current
+    schema; ``Config()`` when the checkpoint holds none.
+
+    Migrations (what older torchfric versions wrote that the current schema rejects):
+
+    - ``estimator.ensemble*`` keys of a run whose method is not "ekf" are dropped (those runs
+      never used them; older versions stored their own defaults there);
+    - keys and sections the current schema does not know are dropped (a setting that no longer
+      exists cannot apply).
+
+    Data paths are kept as stored and not checked (``check_files=False``): evaluating or
+    exporting a checkpoint does not need its training files. A config that still does not
+    validate raises a one-line `TorchfricError` naming the checkpoint.
+    """
+    from .config import Config
+
+    if not isinstance(raw, Mapping):
+        raise TorchfricError(f"a checkpoint must be a dict, got {type(raw).__name__}")
+    stored = raw.get("config")
+    if not stored:
+        return Config()
+    name = raw.get("name", "?")
+    if not isinstance(stored, Mapping):
+        raise TorchfricError(
+            f"checkpoint {name!r}: its config is a {type(stored).__name__}, not a table; the "
+            "checkpoint is damaged"
+        )
+    cfg = _migrate_config(stored)
+    try:
+        return Config.from_dict(cfg, check_files=False)
+    except TorchfricError as exc:
+        raise TorchfricError(
+            f"checkpoint {name!r} (torchfric {raw.get('torchfric_version', '?')}): its stored "
+            f"config does not validate under torchfric {_torchfric_version()}: {exc}"
+        ) from None
+
+
+def _migrate_config(stored: Mapping[str, Any]) -> dict[str, Any]:
+    """`stored` (a `Config.to_dict` of some torchfric version) reduced to the keys the current
+    schema knows, with the ensemble keys of non-EKF runs dropped."""
+    import dataclasses
+
+    from .config import Config
+
+    default = Config()
+    sections: dict[str, set[str]] = {}
+    top_keys: set[str] = set()
+    for f in dataclasses.fields(Config):
+        value = getattr(default, f.name)
+        if dataclasses.is_dataclass(value):
+            sections[f.name] = {g.name for g in dataclasses.fields(value)}
+        else:
+            top_keys.add(f.name)
+    out: dict[str, Any] = {}
+    for key, value in stored.items():
+        if key in sections and isinstance(value, Mapping):
+            out[key] = {k: v for k, v in value.items() if k in sections[key]}
+        elif key in top_keys or (key in sections and not isinstance(value, Mapping)):
+            out[key] = value  # a malformed section is left for from_dict to report
+    est = out.get("estimator")
+    if isinstance(est, dict) and est.get("method", "ekf") != "ekf":
+        for key in _EKF_ONLY_KEYS:
+            est.pop(key, None)
+    return out

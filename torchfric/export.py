@@ -1,12 +1,32 @@
 """Export an identified model as a TorchScript module that loads without torchfric.
 
-The module offers ``simulate(t, u, x0) -> (q, qdot)`` and ``friction(v)`` (total friction
-``b v + C(v) + offset``). Its integrator is the same fixed-grid RK4 (3/8 rule) with the same
-sub-steps and exact zero-order hold as `torchfric.simulate`, so the outputs agree to rounding.
+The module offers ``simulate(t, u, x0) -> (q, qdot)``, ``simulate_batch(t, u, x0)``,
+``field(x, u)`` (the vector field), ``friction(v)`` (total friction ``C(v) + b v + offset +
+a |v|``, the terms the model has), ``substeps_for(t)`` and ``parameters`` (physical values by
+name).
+
+Nothing of the physics is written here a second time:
+
+- the white-box terms are `torchfric.arm.arm_field` / `arm_friction`, the functions that
+  `ArmModel.dynamics` and `ArmModel.friction_torque` call (TorchScript compiles them into the
+  module);
+- the black-box curve C(v) is the model's own `Friction.evaluate`, traced at the identified
+  parameter values (physical values, exactly the ones `ArmModel.split` gives the simulator);
+- the integrator repeats torchdiffeq's fixed-grid step (`torchfric.simulate` goes through
+  ``odeint``) on the grid of `torchfric.simulate.sample_grid`, with exact zero-order hold.
+
+The sub-step count follows the sample time the module is called with: with ``substeps="auto"``
+it is `torchfric.simulate.auto_substeps`' rule ``S = min(max(1, ⌈λ·dt/c⌉), max_substeps)`` (λ the
+model's stiffest friction slope over M, computed at export; dt the longest interval of the `t`
+passed in), so the module simulates correctly at any sample time and agrees with
+``torchfric.simulate(model, t, u, x0)`` to rounding. A fixed integer `substeps` is used as is,
+like ``simulate(..., substeps=S)``.
 """
 
 from __future__ import annotations
 
+import io
+import math
 import pathlib
 import warnings
 from typing import Any
@@ -14,75 +34,156 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .arm import ArmModel
+from .arm import ArmModel, arm_field, arm_friction
 from .errors import TorchfricError
-from .simulate import auto_substeps
+from .rundir import atomic_write_bytes
+from .simulate import SOLVERS
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]
 
-_KINDS = {"tanh": 0, "polytopic": 1, "coulomb": 2, "stribeck": 3}
+_METHODS = {"euler": 0, "midpoint": 1, "rk4": 2}
+
+
+class _FrictionCurve(nn.Module):
+    """``C(v)`` of a `Friction` module at fixed physical parameter values (buffers named as the
+    friction's parameters): the friction's own `evaluate`, for `torch.jit.trace` on 1-D `v`."""
+
+    def __init__(self, model: ArmModel, fric: dict[str, Tensor]) -> None:
+        super().__init__()
+        self._names = list(fric)
+        for name, value in fric.items():
+            self.register_buffer(name, value.detach().clone())
+        # A bound method, not a submodule: the trace records its operations only.
+        self._evaluate = model.friction.evaluate
+
+    def forward(self, v: Tensor) -> Tensor:
+        return self._evaluate(v, {name: getattr(self, name) for name in self._names})
+
+
+def _trace_curve(model: ArmModel, fric: dict[str, Tensor]) -> torch.jit.ScriptModule:
+    curve = _FrictionCurve(model, fric)
+    example = torch.linspace(-2.0, 2.0, 7, dtype=torch.float64)
+    checks = [
+        (torch.linspace(-50.0, 50.0, 101, dtype=torch.float64),),
+        (torch.zeros(1, dtype=torch.float64),),
+    ]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        try:
+            traced = torch.jit.trace(curve, (example,), check_inputs=checks)
+        except Exception as exc:  # a friction whose evaluate the tracer cannot follow
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise TorchfricError(
+                f"cannot export the {model.friction.kind!r} friction as TorchScript ({first})"
+            ) from None
+    return traced
 
 
 class ExportedArm(nn.Module):
-    """Self-contained arm simulator (TorchScript-compatible; physical parameter values)."""
+    """Self-contained arm simulator (TorchScript-compatible; physical parameter values).
 
-    def __init__(self, model: ArmModel, substeps: int) -> None:
+    Args:
+        model: the identified arm; its current θ is frozen into the module.
+        substeps: solver steps per sample interval, or ``"auto"`` (chosen per call from the
+            sample time, `torchfric.simulate.auto_substeps`' rule).
+        method: fixed-grid solver, one of `torchfric.simulate.SOLVERS` (as in `simulate`).
+        max_substeps: cap of the automatic count (`simulate`'s `max_substeps`).
+        dt: the sample time of the training data, kept as metadata (``nominal_dt``; 0 = unknown);
+            the module simulates at whatever sample time `t` has.
+    """
+
+    def __init__(
+        self,
+        model: ArmModel,
+        substeps: int | str = "auto",
+        *,
+        method: str = "rk4",
+        max_substeps: int = 64,
+        dt: float | None = None,
+    ) -> None:
         super().__init__()
-        fr = model.friction
-        p = {k: v.detach().clone() for k, v in fr.physical_parameters().items()}
-        self.kind = _KINDS[fr.kind]
-        self.substeps = int(substeps)
-        self.eps = float(getattr(fr, "eps", 1.0))
-        z = torch.zeros(1, dtype=torch.float64)
-        self.register_buffer("w1", p.get("W1", z))
-        self.register_buffer("w2", p.get("W2", z))
-        if fr.kind == "polytopic":
-            a, b, c, s = p["a"], p["b"], p["c"], p["sigma"]
-            self.register_buffer("centres", torch.cat([torch.zeros(1, dtype=torch.float64), c, -c]))
-            self.register_buffer("slopes", torch.cat([a, a[1:]]))
-            self.register_buffer("offsets", torch.cat([torch.zeros(1, dtype=torch.float64), b, -b]))
-            self.register_buffer("variances", torch.cat([s, s[1:]]))
+        if not isinstance(model, ArmModel):
+            raise TorchfricError(f"model must be a torchfric ArmModel, got {type(model).__name__}")
+        if method not in _METHODS:
+            raise TorchfricError(f"unknown solver {method!r}; choose one of {sorted(SOLVERS)}")
+        if substeps == "auto":
+            fixed = 0
+        elif isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1:
+            fixed = int(substeps)
         else:
-            for name in ("centres", "slopes", "offsets", "variances"):
-                self.register_buffer(name, z.clone())
-        self.fc = float(p["Fc"][0]) if "Fc" in p else 0.0
-        self.fs = float(p["Fs"][0]) if "Fs" in p else 0.0
-        self.vs = float(p["vs"][0]) if "vs" in p else 1.0
-        self.inertia = float(model.inertia.detach())
-        self.viscous = float(model.viscous.detach())
-        self.offset = float(model.offset.detach())
-        self.gravity = float(model.gravity.detach())
-        self.c_m = float(model.c_m.detach())
+            raise TorchfricError(f"substeps must be a positive integer or 'auto', got {substeps!r}")
+        if isinstance(max_substeps, bool) or not isinstance(max_substeps, int) or max_substeps < 1:
+            raise TorchfricError(f"max_substeps must be a positive integer, got {max_substeps!r}")
+        theta = model.get_theta()
+        if not bool(torch.isfinite(theta).all()):
+            raise TorchfricError(
+                "the model's θ holds NaN or inf; a checkpoint with such values cannot be exported"
+            )
+        with torch.no_grad():
+            fric, arm = model.split(theta)
+        self.kind = model.friction.kind
+        self.method = _METHODS[method]
+        self.method_name = method
+        self.fixed_substeps = fixed
+        self.max_substeps = int(max_substeps)
+        self.stability = float(SOLVERS[method])
+        self.stiffness = _stiffness(model, theta)
+        self.nominal_dt = 0.0 if dt is None else float(dt)
+        self.parameters_by_name = model.physical_parameters()
+        self.curve = _trace_curve(model, fric)
+        self.register_buffer("c_m", arm["c_m"].detach().clone().reshape(()))
+        self.register_buffer("inertia", arm["inertia"].detach().clone().reshape(()))
+        # Terms the model lacks stay None, exactly as in ArmModel.dynamics.
+        for name in ("viscous", "offset", "gravity", "asymmetric"):
+            value = arm.get(name)
+            self.register_buffer(name, None if value is None else value.detach().clone())
 
     def black_box(self, v: Tensor) -> Tensor:
-        """C(v) alone."""
-        if self.kind == 0:
-            return (torch.tanh(v.unsqueeze(-1) * self.w1) * self.w2).sum(-1)
-        if self.kind == 1:
-            d = v.unsqueeze(-1) - self.centres
-            w = torch.softmax(-0.5 * d * d / self.variances, dim=-1)
-            return (w * (self.slopes * d + self.offsets)).sum(-1)
-        if self.kind == 2:
-            return self.fc * torch.tanh(v / self.eps)
-        level = self.fc + (self.fs - self.fc) * torch.exp(-((v / self.vs) ** 2))
-        return level * torch.tanh(v / self.eps)
+        """C(v) alone, any shape."""
+        return self.curve(v.reshape(-1)).reshape(v.shape)
 
     @torch.jit.export
     def friction(self, v: Tensor) -> Tensor:
-        """Total friction b v + C(v) + offset at velocities v (any shape)."""
-        return self.viscous * v + self.black_box(v) + self.offset
+        """Total friction C(v) + b v + offset + a |v| (the model's terms) at velocities v."""
+        return arm_friction(v, self.black_box(v), self.viscous, self.offset, self.asymmetric)
 
+    @torch.jit.export
     def field(self, x: Tensor, u: Tensor) -> Tensor:
-        q = x[..., 0]
-        v = x[..., 1]
-        torque = (
-            self.c_m * u
-            - self.black_box(v)
-            - self.viscous * v
-            - self.offset
-            - self.gravity * torch.sin(q)
+        """The vector field ẋ = f(x, u) for states x (..., 2) and input u (broadcast)."""
+        return arm_field(
+            x,
+            u,
+            self.black_box(x[..., 1]),
+            self.c_m,
+            self.inertia,
+            self.viscous,
+            self.offset,
+            self.gravity,
+            self.asymmetric,
         )
-        return torch.stack([v, torque / self.inertia], dim=-1)
+
+    @torch.jit.export
+    def substeps_for(self, t: Tensor) -> int:
+        """Solver steps per sample interval for sample times t: the fixed count, or
+        min(max(1, ceil(stiffness * dt / stability)), max_substeps) with dt the longest interval."""
+        if self.fixed_substeps > 0:
+            return self.fixed_substeps
+        dt = float((t[1:] - t[:-1]).max())
+        return min(max(1, int(math.ceil(self.stiffness * dt / self.stability))), self.max_substeps)
+
+    def step(self, x: Tensor, uk: Tensor, t0: Tensor, t1: Tensor) -> Tensor:
+        """One solver step from t0 to t1 with held input uk (torchdiffeq's fixed-grid steps)."""
+        h = t1 - t0
+        k1 = self.field(x, uk)
+        if self.method == 0:
+            return x + h * k1
+        if self.method == 1:
+            half = 0.5 * h
+            return x + h * self.field(x + k1 * half, uk)
+        k2 = self.field(x + h * k1 * (1.0 / 3.0), uk)
+        k3 = self.field(x + h * (k2 - k1 * (1.0 / 3.0)), uk)
+        k4 = self.field(x + h * (k1 - k2 + k3), uk)
+        return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
 
     @torch.jit.export
     def simulate(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
@@ -92,24 +193,31 @@ class ExportedArm(nn.Module):
 
     @torch.jit.export
     def simulate_batch(self, t: Tensor, u: Tensor, x0: Tensor) -> Tensor:
-        """`simulate` for any batch shape: `u (N, ...)`, `x0 (..., 2)` → states `(N, ..., 2)`."""
+        """`simulate` for a batch: `u (N,)` or `(N, B)`, `x0 (2,)` or `(B, 2)` → `(N, [B,] 2)`."""
+        t = t.to(torch.float64)
+        u = u.to(torch.float64)
+        x0 = x0.to(torch.float64)
+        if t.dim() != 1 or t.shape[0] < 2:
+            raise ValueError("t must be a 1-D tensor of at least 2 sample times")
         n = t.shape[0]
+        if u.dim() == 0 or u.shape[0] != n:
+            raise ValueError("u must have one input per sample time (u.shape[0] == t.shape[0])")
+        if x0.dim() == 0 or x0.shape[-1] != 2:
+            raise ValueError("x0 must end in 2 entries [q, qdot]")
+        if not bool((t[1:] > t[:-1]).all()):
+            raise ValueError("t must be strictly increasing")
+        s = self.substeps_for(t)
         out = torch.empty([n] + x0.shape, dtype=x0.dtype)
         x = x0.clone()
         out[0] = x
-        s = self.substeps
         for k in range(n - 1):
             span = t[k + 1] - t[k]
             uk = u[k]
+            ta = t[k]
             for j in range(s):
-                ta = t[k] + span * (float(j) / s)
                 tb = t[k + 1] if j == s - 1 else t[k] + span * (float(j + 1) / s)
-                h = tb - ta
-                k1 = self.field(x, uk)
-                k2 = self.field(x + h * k1 * (1.0 / 3.0), uk)
-                k3 = self.field(x + h * (k2 - k1 * (1.0 / 3.0)), uk)
-                k4 = self.field(x + h * (k1 - k2 + k3), uk)
-                x = x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
+                x = self.step(x, uk, ta, tb)
+                ta = tb
             out[k + 1] = x
         return out
 
@@ -117,31 +225,58 @@ class ExportedArm(nn.Module):
         return self.simulate(t, u, x0)
 
 
+def _stiffness(model: ArmModel, theta: Tensor) -> float:
+    """λ = max |∂q̈/∂q̇| over |v| in [1e-4, 1e3], as `torchfric.simulate.auto_substeps` takes it."""
+    mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
+    v = torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags]).requires_grad_(True)
+    with torch.enable_grad():
+        (g,) = torch.autograd.grad(model.friction_torque(v, theta).sum(), v)
+    lam = float(g.detach().abs().max() / model.split(theta)[1]["inertia"])
+    if not math.isfinite(lam):
+        raise TorchfricError(
+            "the model's friction slope is not finite; check the parameters (NaN or inf in θ)"
+        )
+    return lam
+
+
 def export_model(
-    model: ArmModel, *, dt: float, substeps: int | str = "auto"
+    model: ArmModel,
+    *,
+    dt: float | None = None,
+    substeps: int | str = "auto",
+    method: str = "rk4",
+    max_substeps: int = 64,
 ) -> torch.jit.ScriptModule:
-    """Script `model` for simulation at sample time `dt` (sub-steps fixed at export)."""
-    if substeps == "auto":
-        steps = auto_substeps(model, dt)
-    elif isinstance(substeps, int) and substeps >= 1:
-        steps = substeps
-    else:
-        raise TorchfricError(f"substeps must be a positive integer or 'auto', got {substeps!r}")
+    """Script `model` as a self-contained simulator (`ExportedArm`).
+
+    Args:
+        model: the identified arm.
+        dt: the training data's sample time, stored as ``nominal_dt`` (metadata only: with
+            ``substeps="auto"`` the module picks its sub-steps from the `t` it is called with).
+        substeps: ``"auto"`` (per call, `torchfric.simulate.auto_substeps`' rule) or a fixed
+            positive integer.
+        method: fixed-grid solver (`torchfric.simulate.SOLVERS`), as `simulate`'s `method`.
+        max_substeps: cap of the automatic count, as `simulate`'s.
+    """
+    module = ExportedArm(model, substeps, method=method, max_substeps=max_substeps, dt=dt)
     with warnings.catch_warnings():
         # TorchScript is deprecated upstream but is still the format that loads without the
         # defining Python code (torch.export needs the class importable to re-trace).
         warnings.simplefilter("ignore", DeprecationWarning)
-        return torch.jit.script(ExportedArm(model, steps))
+        try:
+            return torch.jit.script(module)
+        except Exception as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise TorchfricError(f"cannot script the model for export ({first})") from None
 
 
 def save_exported(module: Any, path: str | pathlib.Path) -> None:
-    """Write the scripted module atomically (temp file + rename)."""
-    import os
+    """Write the scripted module atomically (temp file + rename; no temp file left behind)."""
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    buffer = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.jit.save(module, str(tmp))
-    os.replace(tmp, path)
+        torch.jit.save(module, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
