@@ -98,8 +98,9 @@ def train_all(
             # `torchfric train CONFIG` (python -m: the interpreter running this script)
             cmd = [sys.executable, "-m", "torchfric", "train"]
             cmd += [str(CONFIGS.relative_to(ROOT) / f"{name}.toml"), "--out", str(run_root / name)]
+            # The case study regenerates the reference checkpoints: the explicit copy step.
+            cmd += ["--overwrite", "--checkpoint", str(ckpt_dir / f"{name}.pt")]
             if ckpt_dir.resolve() != default_ckpt:
-                cmd += ["--set", f"checkpoint_dir={ckpt_dir}"]
                 for d in deps:
                     cmd += ["--set", f"model.init={ckpt_dir / (d + '.pt')}"]
             log = open(run_root / f"{name}.log", "w")  # noqa: SIM115 - closed when it ends

@@ -31,7 +31,6 @@ def _config(tmp: pathlib.Path, name: str = "short", friction: str = "tanh") -> p
             f"""
             name = "{name}"
             out_dir = "{(tmp / "runs").as_posix()}"
-            checkpoint_dir = "{(tmp / "checkpoints").as_posix()}"
             [data]
             train = ["rig:identification"]
             validation = ["rig:validation"]
@@ -56,7 +55,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> dict[str, pathlib.Path]
         "tmp": tmp,
         "cfg": cfg,
         "run": tmp / "runs" / "short",
-        "ckpt": tmp / "checkpoints" / "short.pt",
+        "ckpt": tmp / "runs" / "short" / "short.pt",
     }
 
 
@@ -115,7 +114,7 @@ def test_resume_after_interruption_equals_uninterrupted(
     (copy / "passes" / "pass_002.pt").unlink()
     (copy / "metrics.json").unlink()
     assert main(["train", str(trained["cfg"]), "--quiet", *SHORT, "--resume", str(copy)]) == 0
-    resumed = read_checkpoint(trained["tmp"] / "checkpoints" / "short.pt")
+    resumed = read_checkpoint(copy / "short.pt")
     original = read_checkpoint(run / "passes" / "pass_002.pt")
     torch.testing.assert_close(resumed["theta"], original["theta"], rtol=0, atol=1e-12)
     assert resumed["estimator"]["state"]["pass"] == 2
@@ -210,7 +209,8 @@ def test_generate_writes_rig_files(
         (["--set", "estimator.pases=3"], "passes"),
         (["--set", "estimator.passes=0"], "passes"),
         (["--set", "model.friction=spline"], "friction"),
-        (["--set", "data.train=missing.csv"], "missing.csv"),
+        (["--set", "data.train=missing.csv", "--set", "data.validation=[]"], "missing.csv"),
+        (["--set", "data.train=missing.csv"], "data.validation"),  # no rig records beside it
         (["--set", "model.size=4", "--set", "model.friction=polytopic"], "odd"),
         (["--set", "estimator.method=output_error", "--set", "estimator.lr_final=1.0"], "lr_final"),
         (["--set", "estimator.schedule=[50, 1]"], "schedule"),
@@ -229,7 +229,7 @@ def test_bad_input_is_one_line_error(
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "\n" not in err and "Traceback" not in err
     assert message in err
-    assert not (tmp_path / "checkpoints").exists()
+    assert not (tmp_path / "runs").exists()  # checked before anything is written
 
 
 def test_refuses_corrupt_checkpoint(
@@ -290,7 +290,7 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     assert not any(s["complete"] for s in snaps.values())  # every snapshot on disk loads
     last = snaps[max(snaps)]
     assert main(["train", str(cfg), "--quiet", *SHORT, "--resume", str(run)]) == 0
-    resumed = read_checkpoint(tmp_path / "checkpoints" / "short.pt")
+    resumed = read_checkpoint(run / "short.pt")
     assert resumed["complete"] and resumed["estimator"]["state"]["pass"] == 2
 
     est = last["estimator"]["state"]
@@ -328,34 +328,35 @@ def test_output_error_resume_continues_from_the_latest_not_the_best_theta(
         "--set", "estimator.eval_every=2", "--set", "estimator.batch=8",
     ]  # fmt: skip
     assert main(["train", str(cfg), "--quiet", *args]) == 0
-    full = read_checkpoint(tmp_path / "checkpoints" / "oe.pt")["estimator"]["state"]
+    full = read_checkpoint(tmp_path / "runs" / "oe" / "oe.pt")["estimator"]["state"]
     (tmp_path / "runs" / "oe" / "passes" / "epoch_00004.pt").unlink()
     assert main(["train", str(cfg), "--quiet", *args, "--resume", str(tmp_path / "runs" / "oe")]) == 0
-    resumed = read_checkpoint(tmp_path / "checkpoints" / "oe.pt")["estimator"]["state"]
+    resumed = read_checkpoint(tmp_path / "runs" / "oe" / "oe.pt")["estimator"]["state"]
     assert full["best_epoch"] == resumed["best_epoch"]
     assert torch.equal(full["theta"], resumed["theta"])
     assert torch.equal(full["shooting"], resumed["shooting"])
     assert [r["theta"] for r in full["history"]] == [r["theta"] for r in resumed["history"]]
 
 
-def test_fresh_run_clears_an_earlier_runs_snapshots(
+def test_a_new_run_never_touches_an_earlier_one(
     trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
 ) -> None:
+    """The default run directory is taken: the new run gets runs/short-2, the earlier files stay
+    byte for byte (they used to be deleted as "stale")."""
     import shutil
 
     cfg = _config(tmp_path, name="short")
     run = tmp_path / "runs" / "short"
-    (run / "passes").mkdir(parents=True)
-    shutil.copy(trained["run"] / "passes" / "pass_002.pt", run / "passes" / "pass_009.pt")
-    (run / "events.out.tfevents.0.stale").write_bytes(b"")
-    assert (
-        main(
-            ["train", str(cfg), "--quiet", "--set", "data.stop=1500", "--set", "estimator.passes=1"]
-        )
-        == 0
-    )
-    assert sorted(p.name for p in (run / "passes").iterdir()) == ["pass_001.pt"]
-    assert not (run / "events.out.tfevents.0.stale").exists()
+    shutil.copytree(trained["run"], run)
+    (run / "notes.txt").write_text("mine")
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    args = ["train", str(cfg), "--quiet", "--set", "data.stop=1500", "--set", "estimator.passes=1"]
+    assert main(args) == 0
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    second = tmp_path / "runs" / "short-2"
+    assert (second / "short.pt").is_file() and (second / "metrics.json").is_file()
+    assert main(args) == 0
+    assert (tmp_path / "runs" / "short-3" / "short.pt").is_file()
 
 
 def test_output_error_run_warm_started_from_the_ekf(
@@ -375,7 +376,7 @@ def test_output_error_run_warm_started_from_the_ekf(
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["estimator"] == "ekf+output_error"
     assert metrics["epochs"] >= 1 and "fit_q" in metrics["validation"]["validation"]
-    raw = read_checkpoint(tmp_path / "checkpoints" / "polish.pt")
+    raw = read_checkpoint(run / "polish.pt")
     assert raw["estimator"]["state"]["method"] == "output_error"
     acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
     acc.Reload()

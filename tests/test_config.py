@@ -39,7 +39,7 @@ def touch(path: pathlib.Path) -> pathlib.Path:
 
 def test_defaults() -> None:
     c = Config()
-    assert (c.name, c.seed, c.out_dir, c.checkpoint_dir) == ("run", 0, "runs", "checkpoints")
+    assert (c.name, c.seed, c.out_dir) == ("run", 0, "runs")
     assert c.data == DataConfig(
         train=("rig:identification",),
         validation=("rig:validation",),
@@ -130,16 +130,15 @@ def test_load_file_resolves_data_paths_against_its_folder(
     ckpt = touch(folder / "first.pt")
     cfg = write(
         folder,
-        'name = "exp1"\nseed = 7\n[data]\ntrain = "data/a.csv"\nvalidation = ["../b.csv", '
-        '"rig:validation"]\ntest = ["rig:extrapolation"]\n[model]\nfriction = "polytopic"\n'
-        'size = 5\noffset = -3\ninit = "first.pt"\n',
+        'name = "exp1"\nseed = 7\n[data]\ntrain = "data/a.csv"\nvalidation = ["../b.csv"]\n'
+        '[model]\nfriction = "polytopic"\nc_m = 2.5\nsize = 5\noffset = -3\ninit = "first.pt"\n',
     )
     monkeypatch.chdir(tmp_path.parent)  # the working directory must not matter
     c = Config.load(cfg)
     assert c.name == "exp1" and c.seed == 7
     assert c.data.train == (str(a),)
-    assert c.data.validation == (str(b), "rig:validation")
-    assert c.data.test == ("rig:extrapolation",)
+    assert c.data.validation == (str(b),)
+    assert c.data.test == ()
     assert c.model.init == str(ckpt)
     assert c.model.offset == -3.0 and isinstance(c.model.offset, float)
     assert all(os.path.isabs(p) for p in c.data.train + c.data.validation[:1])
@@ -159,12 +158,13 @@ def test_set_paths_are_relative_to_the_working_directory(
         cfg,
         [
             "data.train=x.csv",
-            'data.validation=["sub/y.csv", "rig:validation"]',
+            'data.validation=["sub/y.csv"]',
             "model.init=warm.pt",
+            "model.c_m=16",
         ],
     )
     assert c.data.train == (str(a),)
-    assert c.data.validation == (str(b), "rig:validation")
+    assert c.data.validation == (str(b),)
     assert c.model.init == str(ckpt)
 
 
@@ -209,7 +209,7 @@ def test_to_toml_round_trip(tmp_path: pathlib.Path) -> None:
     c = Config.loads(
         'name = "rt"\nseed = 3\n[data]\ntrain = ["a.csv", "rig:identification"]\n'
         'columns = { u = "vir", q = "weird \\"name\\"" }\ntime_step = 0.001\nstop = 500\n'
-        'velocity = "zero_phase"\nvelocity_cutoff_hz = 40\n[model]\nfriction = "stribeck"\n'
+        'velocity = "zero_phase"\nvelocity_cutoff_hz = 40\n[model]\nfriction = "stribeck"\nc_m = 3\n'
         "offset = 0.25\ngravity = 0.5\nestimate_c_m = true\nvelocity_scale = 3.0\n"
         "[estimator]\np0_theta = [1.0, 0.5]\nq_theta = 1e-12\ntheta_bound = 1e300\n"
         '[simulation]\nmethod = "euler"\nsubsteps = 16\n',
@@ -345,7 +345,7 @@ def test_missing_files_are_errors(tmp_path: pathlib.Path, monkeypatch: pytest.Mo
     with pytest.raises(TorchfricError, match=r"config file .*nope\.toml' not found"):
         Config.load(tmp_path / "nope.toml")
     # check_files=False (e.g. reading the config stored in a checkpoint on another machine)
-    c = Config.loads('[data]\ntrain = "b.csv"', check_files=False)
+    c = Config.loads('[data]\ntrain = "b.csv"\n[model]\nc_m = 1', check_files=False)
     assert c.data.train == (str(tmp_path / "b.csv"),)
 
 

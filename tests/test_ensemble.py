@@ -299,7 +299,6 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
             f"""
             name = "ens"
             out_dir = "{(tmp_path / "runs").as_posix()}"
-            checkpoint_dir = "{(tmp_path / "checkpoints").as_posix()}"
             [data]
             train = ["rig:identification"]
             validation = ["rig:validation"]
@@ -341,16 +340,16 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     assert [e.step for e in acc.Scalars("ekf/loglik")] == [1, 2]
     kept = report["members"][best]
     assert acc.Scalars("ekf/loglik")[-1].value == pytest.approx(kept["loglik"], rel=1e-6)
-    ckpt = read_checkpoint(tmp_path / "checkpoints" / "ens.pt")
+    ckpt = read_checkpoint(tmp_path / "runs" / "ens" / "ens.pt")
     snap2 = read_checkpoint(run / "passes" / "ensemble_002.pt")
     torch.testing.assert_close(ckpt["theta"], snap2["estimator"]["state"]["thetas"][best])
 
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)
     (copy / "passes" / "ensemble_002.pt").unlink()
-    (tmp_path / "checkpoints" / "ens.pt").unlink()
+    (copy / "ens.pt").unlink()
     assert main(["train", str(cfg), "--quiet", "--resume", str(copy)]) == 0
-    resumed = read_checkpoint(tmp_path / "checkpoints" / "ens.pt")
+    resumed = read_checkpoint(copy / "ens.pt")
     torch.testing.assert_close(resumed["theta"], ckpt["theta"], rtol=0, atol=1e-12)
 
 

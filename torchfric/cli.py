@@ -8,15 +8,19 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import io
 import json
-import os
 import pathlib
+import shlex
 import sys
+import warnings
 from collections.abc import Sequence
 
 import torch
 
-from .errors import TorchfricError
+from .environment import check_environment
+from .errors import RunInterrupted, TorchfricError
+from .rundir import atomic_write_text, json_safe
 
 __all__ = ["main"]
 
@@ -44,36 +48,61 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .runner import train
 
     cfg = Config.load(args.config, list(args.set or []))
-    if args.resume is not None:
-        run_dir = args.resume
-    else:
-        run_dir = args.out
-    result = train(
-        cfg, run_dir=run_dir, resume=args.resume is not None, say=_say_factory(args.quiet)
-    )
-    if not args.quiet:
-        print(
-            json.dumps(
-                {
-                    "checkpoint": str(result.checkpoint),
-                    "run_dir": str(result.run_dir),
-                    "inertia": result.metrics["inertia"],
-                    "validation": result.metrics["validation"],
-                },
-                indent=2,
-            )
+    try:
+        result = train(
+            cfg,
+            run_dir=args.resume if args.resume is not None else args.out,
+            resume=args.resume is not None,
+            overwrite=args.overwrite,
+            checkpoint=args.checkpoint,
+            say=_say_factory(args.quiet),
         )
+    except RunInterrupted as stop:
+        if stop.run_dir is not None:
+            sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
+            stop.args = (
+                f"{stop}; continue with: torchfric train {shlex.quote(args.config)}{sets} "
+                f"--resume {shlex.quote(str(stop.run_dir))}",
+            )
+        raise
+    summary = {
+        "checkpoint": str(result.checkpoint),
+        "run_dir": str(result.run_dir),
+        "inertia": result.metrics["inertia"],
+        "validation": result.metrics["validation"],
+        "warnings": result.metrics["warnings"],
+    }
+    if args.json:
+        print(json.dumps(json_safe(summary)[0], indent=2, allow_nan=False))
+    elif not args.quiet:
+        print(f"inertia     {summary['inertia']:.6g}")
+        for name, m in summary["validation"].items():
+            print(f"validation  {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+        for w in summary["warnings"]:
+            print(f"warning     {w}")
+        print(f"checkpoint  {summary['checkpoint']}")
+        print(f"run         {summary['run_dir']}")
     return 0
 
 
+def _refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> None:
+    """An output path never names an input; an existing file is replaced only with --force."""
+    target = out.resolve()
+    for p in inputs:
+        if not p.startswith("rig:") and pathlib.Path(p).resolve() == target:
+            raise TorchfricError(f"--out {out} is an input of this command; give another file name")
+    if out.is_dir():
+        raise TorchfricError(f"--out {out} is a directory; give a file name")
+    if out.exists() and not force:
+        raise TorchfricError(f"--out {out} exists; give a new file name, or --force to replace it")
+
+
 def _load_for_eval(checkpoint: str, data: str):  # type: ignore[no-untyped-def]
-    from .checkpoint import load_checkpoint, read_checkpoint
-    from .config import Config
+    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
     from .runner import _load_one
 
     model = load_checkpoint(checkpoint)
-    raw = read_checkpoint(checkpoint)
-    cfg = Config.from_dict(raw["config"], check_files=False) if raw.get("config") else Config()
+    cfg = checkpoint_config(read_checkpoint(checkpoint))
     # The training's sample range does not apply to the file being evaluated.
     cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, start=0, stop=None))
     exp, _ = _load_one(cfg, data)
@@ -111,6 +140,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     from .simulate import simulate
 
+    out = pathlib.Path(args.out)
+    _refuse_overwrite(out, [args.checkpoint, args.data], args.force)
     model, cfg, exp = _load_for_eval(args.checkpoint, args.data)
     x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
     with torch.no_grad():
@@ -120,35 +151,40 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     table = np.column_stack(
         [exp.t.numpy(), exp.u.numpy(), states[:, 0].numpy(), states[:, 1].numpy()]
     )
-    out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    np.savetxt(tmp, table, delimiter=",", header="t,u,q,qdot", comments="", fmt="%.17g")
-    tmp.replace(out)
+    text = io.StringIO()
+    np.savetxt(text, table, delimiter=",", header="t,u,q,qdot", comments="", fmt="%.17g")
+    atomic_write_text(out, text.getvalue())
     print(f"wrote {out} ({exp.n} samples)")
     return 0
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from .checkpoint import load_checkpoint, read_checkpoint
+    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
     from .export import export_model, save_exported
 
+    _refuse_overwrite(pathlib.Path(args.out), [args.checkpoint], args.force)
     model = load_checkpoint(args.checkpoint)
     raw = read_checkpoint(args.checkpoint)
     dt = args.dt
     if dt is None:
         dt = float(raw.get("metrics", {}).get("dt", 1e-3))
-    substeps = raw.get("config", {}).get("simulation", {}).get("substeps", "auto")
-    module = export_model(model, dt=dt, substeps=substeps)
+    cfg = checkpoint_config(raw)
+    module = export_model(
+        model, dt=dt, substeps=cfg.simulation.substeps, method=cfg.simulation.method
+    )
     save_exported(module, args.out)
-    print(f"wrote {args.out}: torch.jit.load(path).simulate(t, u, x0) -> (q, qdot); .friction(v)")
+    print(
+        f"wrote {args.out}: torch.jit.load(path).simulate(t, u, x0) -> (q, qdot) at any sample "
+        "time; .friction(v), .field(x, u)"
+    )
     return 0
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
     from .rig import generate
 
-    paths = generate(args.outdir, seed=args.seed)
+    paths = generate(args.outdir, seed=args.seed, force=args.force)
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0
@@ -174,13 +210,31 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="override a config key, e.g. --set estimator.passes=20 (repeatable)",
     )
-    p.add_argument("--out", default=None, help="run directory (default: <out_dir>/<name>)")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="run directory (default: <out_dir>/<name>, or <name>-2, ... when that exists); "
+        "must be new or empty, or an earlier run with --overwrite",
+    )
     p.add_argument(
         "--resume",
         metavar="RUN_DIR",
         default=None,
         help="continue an interrupted run from its last completed pass",
     )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the earlier run in --out (only once the new run has finished)",
+    )
+    p.add_argument(
+        "--checkpoint",
+        metavar="PATH",
+        default=None,
+        help="also copy the final checkpoint to PATH (replaces only a torchfric checkpoint); "
+        "the one explicit way to update checkpoints/",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_train)
 
@@ -204,6 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("checkpoint")
     p.add_argument("data")
     p.add_argument("--out", required=True, help="output CSV (columns t,u,q,qdot)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_simulate)
 
     p = sub.add_parser(
@@ -217,8 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--dt",
         type=float,
         default=None,
-        help="sample time the module will simulate at (default: the training data's)",
+        help="nominal sample time stored with the module (metadata: it simulates at the sample time of the t it is given; default: the training data's)",
     )
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser(
@@ -228,26 +284,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("outdir")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--force", action="store_true", help="replace the rig's files in OUTDIR")
     p.set_defaults(func=_cmd_generate)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    torch.set_default_dtype(torch.float64)
-    # The filter's tensors are tiny: a thread pool only adds overhead, and with a busy second
-    # core it made small operations several times slower here. TORCHFRIC_THREADS overrides.
-    torch.set_num_threads(int(os.environ.get("TORCHFRIC_THREADS", "1")))
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        env = check_environment()
+        torch.set_default_dtype(torch.float64)
+        # The filter's tensors are tiny: a thread pool only adds overhead, and with a busy second
+        # core it made small operations several times slower here. TORCHFRIC_THREADS overrides.
+        torch.set_num_threads(env["TORCHFRIC_THREADS"])
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = _show_warning
+            return int(args.func(args) or 0)
+    except RunInterrupted as stop:
+        sys.stderr.write(f"\n{stop}\n")
+        return 130
     except TorchfricError as err:
         sys.stderr.write(f"\nerror: {err}\n")
         return 2
     except KeyboardInterrupt:
-        sys.stderr.write(
-            "\ninterrupted: completed passes are saved; continue with --resume RUN_DIR\n"
-        )
+        sys.stderr.write("\ninterrupted; nothing was left half-written\n")
         return 130
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
+    """Library warnings (a slow fallback, a refused cache) as one line, without source lines."""
+    sys.stderr.write(f"warning: {message}\n")
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -3,7 +3,7 @@
 Each section is a frozen dataclass that owns its defaults and checks its own values on
 construction (`__post_init__`), so a `Config` that exists is valid::
 
-    name = "arm_tanh_ekf"          # top level: name, seed, out_dir, checkpoint_dir
+    name = "arm_tanh_ekf"          # top level: name, seed, out_dir
     [data]                         # DataConfig
     train = ["rig:identification"]
     [model]                        # ModelConfig
@@ -20,8 +20,12 @@ Rules the loader applies (`Config.load`):
 - Data paths (``data.train``, ``data.validation``, ``data.test``) and a checkpoint path in
   ``model.init`` are relative to the config file's folder, or to the working directory when
   given with ``--set``; they are stored absolute. ``"rig:NAME"`` names a synthetic-rig
-  experiment (`torchfric.rig.EXPERIMENTS`) and is not a file. ``out_dir`` and
-  ``checkpoint_dir`` stay as written (relative to the working directory of the run).
+  experiment (`torchfric.rig.EXPERIMENTS`) and is not a file. ``out_dir`` stays as written
+  (relative to the working directory of the run).
+- The built-in rig's constants are defaults for rig data only: with rig data (every
+  ``data.train`` entry a ``"rig:NAME"``) ``model.c_m`` defaults to the rig's 16 and
+  ``data.validation`` to ``["rig:validation"]``; with a user's files ``model.c_m`` is required and
+  ``data.validation`` defaults to none, and naming rig data beside them is an error.
 - ``--set KEY=VALUE`` parses VALUE as a TOML value when it parses (``20``, ``1e-3``,
   ``[0.001, 0.01]``, ``true``, ``"x"``) and as a bare string otherwise (``tanh``,
   ``data/a.csv``); the same checks apply.
@@ -49,7 +53,7 @@ from .errors import TorchfricError
 from .friction import FRICTIONS
 from .identify import EKFTuning
 from .output_error import OETuning
-from .rig import EXPERIMENTS
+from .rig import EXPERIMENTS, RigParameters
 from .simulate import SOLVERS
 
 __all__ = [
@@ -69,6 +73,14 @@ __all__ = [
 
 RIG_PREFIX = "rig:"
 """A data path ``"rig:NAME"`` names the synthetic rig's experiment NAME instead of a file."""
+RIG_VALIDATION: tuple[str, ...] = (RIG_PREFIX + "validation",)
+"""``data.validation``'s default for rig data (a user's data has none by default)."""
+MAX_PASSES = 1000
+"""EKF passes above this are refused: the paper needs 10 and `tolerance` stops earlier."""
+MAX_EPOCHS = 100_000
+MAX_CONFIG_BYTES = 1_000_000
+MAX_NAME = 100
+"""Longest run name: it becomes a folder and a file name."""
 ESTIMATORS: tuple[str, ...] = ("ekf", "output_error")
 ENSEMBLE_KEYS: tuple[str, ...] = (
     "ensemble",
@@ -106,11 +118,23 @@ def _a(noun: str) -> str:
     return ("an " if noun[:1] in "aeiou" else "a ") + noun
 
 
+SHOW_LIMIT = 200
+"""At most this many characters of a bad value are echoed in an error message."""
+
+
 def _show(value: Any) -> str:
     try:
-        return _toml_value(value)
-    except TorchfricError:
-        return repr(value)
+        text = _toml_value(value)
+    except (TorchfricError, RecursionError):
+        text = repr(value)
+    return shorten(text)
+
+
+def shorten(text: str, limit: int = SHOW_LIMIT) -> str:
+    """`text`, cut to `limit` characters with the number of characters left out."""
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit - 40]}… ({len(text)} characters)"
 
 
 def _suggest(word: str, allowed: Sequence[str]) -> str:
@@ -267,7 +291,8 @@ class DataConfig:
 
     Attributes:
         train: identification records (paths or ``"rig:NAME"``); all are used in each pass.
-        validation: records for the validation FIT after each pass and in ``metrics.json``.
+        validation: records for the validation FIT after each pass and in ``metrics.json``;
+            the default is ``["rig:validation"]`` for rig data and none for a user's files.
         test: extra held-out records evaluated once at the end.
         columns: our names (t, u, q, qdot) → names in the file, e.g. ``{u = "vir", q = "qm"}``.
         time_step: sample period [s] for files without a t column (checked against t otherwise).
@@ -281,7 +306,7 @@ class DataConfig:
     """
 
     train: tuple[str, ...] = (RIG_PREFIX + "identification",)
-    validation: tuple[str, ...] = (RIG_PREFIX + "validation",)
+    validation: tuple[str, ...] | None = None
     test: tuple[str, ...] = ()
     columns: dict[str, str] = field(default_factory=dict)
     time_step: float | None = None
@@ -297,8 +322,20 @@ class DataConfig:
     def __post_init__(self) -> None:
         c = _Check(self, "data")
         c.paths("train", nonempty=True)
+        if self.validation is None:
+            c.set("validation", RIG_VALIDATION if self.rig_only else ())
         c.paths("validation", nonempty=False)
         c.paths("test", nonempty=False)
+        if not self.rig_only:
+            for key in ("validation", "test"):
+                rig = [p for p in getattr(self, key) if p.startswith(RIG_PREFIX)]
+                if rig:
+                    raise TorchfricError(
+                        f"data.{key} = {_show(list(getattr(self, key)))} names the built-in "
+                        f"rig's data ({rig[0]}) but data.train is your own data; the rig's "
+                        f"records do not measure your machine: give your own files, or "
+                        f"remove data.{key} (--set data.{key}=[])"
+                    )
         cols = self.columns
         if not isinstance(cols, Mapping) or not all(
             isinstance(k, str) and isinstance(v, str) for k, v in cols.items()
@@ -326,6 +363,12 @@ class DataConfig:
             c.range_error("stop", self.stop, f"an integer > data.start = {self.start}, or omit it")
         c.integer("input_delay", ge=0)
 
+    @property
+    def rig_only(self) -> bool:
+        """True when every identification record is the built-in rig's (``"rig:NAME"``)."""
+        train = (self.train,) if isinstance(self.train, str) else self.train
+        return all(isinstance(p, str) and p.startswith(RIG_PREFIX) for p in train)
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -334,7 +377,9 @@ class ModelConfig:
     Attributes:
         friction: black-box friction, a `torchfric.friction.FRICTIONS` name.
         size: neurons (tanh) or local models (polytopic, odd); ignored by the baselines.
-        c_m: motor constant (known unless `estimate_c_m`).
+        c_m: motor constant, torque (or force) per unit of input (known unless
+            `estimate_c_m`). Required with a user's data; ``None`` takes the rig's 16 for rig
+            data (`Config` resolves it).
         inertia, viscous: initial guesses of M and b (with ``init = "config"``, or as the
             fallback of the pre-fit). For "polytopic" the runner ignores `viscous`: the paper's
             polytopic model carries its own slopes and has no separate b.
@@ -352,7 +397,7 @@ class ModelConfig:
 
     friction: str = "tanh"
     size: int = 3
-    c_m: float = 16.0
+    c_m: float | None = None
     inertia: float = 0.03
     viscous: float = 0.01
     offset: float | None = None
@@ -376,7 +421,7 @@ class ModelConfig:
                 f"it needs an odd number of local models (1, 3, 5, ...); use {self.size - 1} or "
                 f"{self.size + 1}"
             )
-        c.number("c_m", gt=0.0)
+        c.number("c_m", gt=0.0, optional=True, example=16.0)
         c.number("inertia", gt=0.0)
         c.number("viscous", ge=0.0)
         c.number("offset", optional=True, example=0.0)
@@ -458,6 +503,11 @@ class EstimatorConfig:
         c = _Check(self, "estimator")
         c.string("method", choices=ESTIMATORS)
         c.integer("passes", ge=1)
+        if self.passes > MAX_PASSES:
+            c.range_error(
+                "passes", self.passes, f"an integer from 1 to {MAX_PASSES} (estimator.tolerance "
+                "stops earlier once θ settles; the paper uses 10)"
+            )
         c.number("tolerance", ge=0.0)
         c.numbers("p0_state", length=2, ge=0.0)
         c.numbers("p0_theta", ge=0.0, scalar=True)
@@ -481,6 +531,8 @@ class EstimatorConfig:
         c.boolean("p0_relative")
         c.boolean("rollback")
         c.integer("epochs", ge=0)
+        if self.epochs > MAX_EPOCHS:
+            c.range_error("epochs", self.epochs, f"an integer from 0 to {MAX_EPOCHS}")
         c.number("lr", gt=0.0)
         c.number("lr_final", gt=0.0)
         c.integer("window", ge=0)
@@ -613,16 +665,19 @@ class Config:
     """A whole run.
 
     Attributes:
-        name: run name: run directory ``out_dir/name`` (unless ``--out``) and final checkpoint
-            ``checkpoint_dir/name.pt``. Letters, digits, ``._+-``.
+        name: run name: run directory ``out_dir/name`` (or ``name-2``, … when that exists;
+            ``--out`` chooses another) and the final checkpoint ``<run directory>/name.pt``.
+            Letters, digits, ``._+-``, at most `MAX_NAME` characters.
         seed: seeds torch/numpy (and the rig's noise for ``rig:`` data).
-        out_dir, checkpoint_dir: folders, relative to the working directory of the run.
+        out_dir: the folder that holds the run directories, relative to the working directory.
+
+    Nothing a run writes goes outside its run directory: the final checkpoint is copied elsewhere
+    only by the explicit ``torchfric train --checkpoint PATH``.
     """
 
     name: str = "run"
     seed: int = 0
     out_dir: str = "runs"
-    checkpoint_dir: str = "checkpoints"
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
@@ -631,6 +686,11 @@ class Config:
     def __post_init__(self) -> None:
         c = _Check(self, "")
         c.string("name")
+        if len(self.name) > MAX_NAME:
+            raise TorchfricError(
+                f"name = {_show(self.name)} is {len(self.name)} characters long; a run name "
+                f"becomes a folder and a file name: use at most {MAX_NAME}"
+            )
         if not _NAME_RE.fullmatch(self.name):
             raise TorchfricError(
                 f"name = {_show(self.name)} is not a usable run name; use letters, digits and "
@@ -638,13 +698,21 @@ class Config:
             )
         c.integer("seed", ge=0)
         c.string("out_dir")
-        c.string("checkpoint_dir")
         for section, cls in _SECTIONS.items():
             if not isinstance(getattr(self, section), cls):
                 raise TorchfricError(
                     f"Config.{section} must be a {cls.__name__}, got "
                     f"{type(getattr(self, section)).__name__}; use Config.from_dict for tables"
                 )
+        if self.model.c_m is None:
+            if not self.data.rig_only:
+                raise TorchfricError(
+                    "model.c_m is required with your own data (the built-in rig's c_m = 16 "
+                    "applies to rig data only): add the line `c_m = VALUE` (your motor constant: "
+                    "torque or force per unit of input) to the [model] section, or pass "
+                    "--set model.c_m=VALUE"
+                )
+            c.set("model", dataclasses.replace(self.model, c_m=RigParameters.c_m))
 
     # -- building -------------------------------------------------------------------------------
     @classmethod
@@ -696,7 +764,14 @@ class Config:
         try:
             raw = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
-            raise TorchfricError(f"{source}: invalid TOML: {exc}; fix the syntax there") from None
+            raise TorchfricError(
+                f"{source}: invalid TOML: {shorten(str(exc))}; fix the syntax there"
+            ) from None
+        except RecursionError:
+            raise TorchfricError(
+                f"{source}: the TOML is nested too deeply to read; a config needs tables one "
+                "level deep ([data], [model], ...)"
+            ) from None
         raw = apply_overrides(raw, overrides)
         return cls.from_dict(raw, base_dir=base_dir, check_files=check_files)
 
@@ -711,10 +786,22 @@ class Config:
         """Read a TOML config file and apply ``--set`` overrides ("dotted.key=value")."""
         p = pathlib.Path(path)
         if not p.is_file():
-            what = "is a directory" if p.is_dir() else "not found"
+            what = (
+                "is a directory"
+                if p.is_dir()
+                else "is not a regular file"
+                if p.exists()
+                else "not found"
+            )
             raise TorchfricError(
-                f"config file {str(p)!r} {what} (working directory {os.getcwd()}); give the path "
-                "of a .toml file"
+                f"config file {shorten(repr(str(p)))} {what} (working directory {os.getcwd()}); "
+                "give the path of a .toml file"
+            )
+        if p.stat().st_size > MAX_CONFIG_BYTES:
+            raise TorchfricError(
+                f"config file {shorten(str(p))} is {p.stat().st_size:,} bytes; a config is a few "
+                f"hundred bytes (at most {MAX_CONFIG_BYTES:,}): give the .toml config, not a data "
+                "file"
             )
         try:
             text = p.read_text(encoding="utf-8")
@@ -735,6 +822,11 @@ class Config:
         """Raise if a data file or the ``model.init`` checkpoint does not exist."""
         for key in DataConfig.PATH_KEYS:
             for i, p in enumerate(getattr(self.data, key)):
+                if not p.startswith(RIG_PREFIX) and os.path.exists(p) and not os.path.isfile(p):
+                    raise TorchfricError(
+                        f"data.{key}[{i}] = {_show(p)} is not a regular file (a directory, FIFO "
+                        "or device); give the path of a CSV, NPZ or MAT data file"
+                    )
                 if not p.startswith(RIG_PREFIX) and not os.path.isfile(p):
                     raise TorchfricError(
                         f"data.{key}[{i}] = {_show(p)}: no such file; fix the path (relative to "
@@ -778,6 +870,12 @@ def _unknown_key(dotted: str, section: str, value: Any = None) -> NoReturn:
             f"in [{section}]: {', '.join(allowed)}"
         )
     sections = ", ".join(f"[{s}]" for s in _SECTIONS)
+    if dotted == "checkpoint_dir":
+        raise TorchfricError(
+            'checkpoint_dir was removed: a run writes its checkpoint inside its run directory '
+            "only; delete the key, and copy the final checkpoint elsewhere with "
+            "`torchfric train CONFIG --checkpoint PATH`"
+        )
     if isinstance(value, Mapping):
         raise TorchfricError(
             f"unknown section [{dotted}]{_suggest(dotted, list(_SECTIONS))}; allowed sections: "

@@ -20,3 +20,17 @@ class DivergenceError(TorchfricError):
     def __init__(self, message: str, *, last_good: object = None) -> None:
         super().__init__(message)
         self.last_good = last_good
+
+
+class RunInterrupted(TorchfricError):
+    """A run stopped by Ctrl-C: where its last completed pass is, to continue with ``--resume``.
+
+    Attributes:
+        run_dir: the run directory to pass to ``--resume`` (None when nothing was saved yet).
+        last: a description of the last completed pass or epoch ("pass 3"), or None.
+    """
+
+    def __init__(self, message: str, *, run_dir: object = None, last: str | None = None) -> None:
+        super().__init__(message)
+        self.run_dir = run_dir
+        self.last = last

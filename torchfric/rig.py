@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from .errors import TorchfricError
+from .rundir import atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "RigParameters",
@@ -492,26 +493,41 @@ def _friction_table(params: RigParameters, v: np.ndarray) -> list[list[float]]:
 
 def _write_npz(path: pathlib.Path, arrays: dict[str, np.ndarray]) -> None:
     """An uncompressed ``.npz`` with fixed time stamps, so equal arrays give identical bytes."""
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+    whole = io.BytesIO()
+    with zipfile.ZipFile(whole, "w", compression=zipfile.ZIP_STORED) as zf:
         for key in sorted(arrays):
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arrays[key]), allow_pickle=False)
             info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.external_attr = 0o644 << 16
             zf.writestr(info, buf.getvalue())
+    atomic_write_bytes(path, whole.getvalue())
 
 
-def generate(outdir: str | pathlib.Path, *, seed: int = 0) -> dict[str, pathlib.Path]:
+def generate(
+    outdir: str | pathlib.Path, *, seed: int = 0, force: bool = False
+) -> dict[str, pathlib.Path]:
     """Write every experiment as ``<outdir>/<name>.csv`` (``t,u,q``), plus ground truth.
 
     ``truth.json`` holds the nominal and changed `RigParameters`, per experiment its system,
     duration, seed and peak |q̇|, and the steady-state friction curve ``F_ss`` of both systems
     on a velocity grid; ``truth_states.npz`` holds ``<name>/<state>`` arrays (q_true,
     qdot_true, friction, z, disturbance). Creates ``outdir``; same seed → identical bytes.
-    Returns ``{file stem: path}`` for every file written.
+    Returns ``{file stem: path}`` for every file written. Existing files are replaced only with
+    `force` (otherwise nothing is written); each file is written atomically.
     """
     seed = _check_seed(seed)
     out = pathlib.Path(outdir)
+    targets = [out / f"{n}.csv" for n in EXPERIMENTS] + [out / "truth.json", out / "truth_states.npz"]
+    existing = [p.name for p in targets if p.exists() or p.is_symlink()]
+    if existing and not force:
+        raise TorchfricError(
+            f"{out} already holds {', '.join(existing[:4])}"
+            + (f" and {len(existing) - 4} more" if len(existing) > 4 else "")
+            + "; choose another folder, or pass --force to replace the rig's files there"
+        )
+    if out.exists() and not out.is_dir():
+        raise TorchfricError(f"{out} is a file, not a folder; give a folder for the rig's data")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -529,8 +545,7 @@ def generate(outdir: str | pathlib.Path, *, seed: int = 0) -> dict[str, pathlib.
         path = out / f"{name}.csv"
         table = np.column_stack([data["t"], data["u"], data["q"]])
         rows = ("%.17g,%.17g,%.17g\n" * len(table)) % tuple(table.ravel().tolist())
-        with open(path, "w", newline="\n") as fh:
-            fh.write("t,u,q\n" + rows)
+        atomic_write_text(path, "t,u,q\n" + rows)
         paths[name] = path
         for key in ("q_true", "qdot_true", "friction", "z", "disturbance"):
             states[f"{name}/{key}"] = data[key]
@@ -557,7 +572,7 @@ def generate(outdir: str | pathlib.Path, *, seed: int = 0) -> dict[str, pathlib.
         },
     }
     path = out / "truth.json"
-    path.write_text(json.dumps(truth, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(path, json.dumps(truth, indent=1, sort_keys=True) + "\n")
     paths["truth"] = path
     path = out / "truth_states.npz"
     _write_npz(path, states)

@@ -25,14 +25,16 @@ from .checkpoint import (
     sha256_file,
 )
 from .config import POSITION_UNITS, RIG_PREFIX, Config
-from .data import Experiment, load_experiment, make_experiment
+from .data import Experiment, data_warnings, load_experiment, make_experiment
 from .ensemble import EnsembleCallback, identify_ekf_ensemble
-from .errors import DivergenceError, TorchfricError
+from .errors import DivergenceError, RunInterrupted, TorchfricError
 from .friction import make_friction
 from .identify import EKFCallback, EKFResult, PassRecord, identify_ekf
 from .metrics import SimulationScore, score_simulation
 from .output_error import EpochRecord, OECallback, OEResult, identify_output_error
 from .prefit import prefit
+from .resources import ekf_bytes, prefit_bytes, require_memory
+from .rundir import RunDir, atomic_write_text, claim_run_dir, json_safe, locked, write_json
 
 __all__ = ["load_data", "initial_model", "train", "TrainResult", "evaluate_model"]
 
@@ -40,8 +42,15 @@ Printer = Callable[[str], None]
 
 
 # -- data ----------------------------------------------------------------------------------------
-def _load_one(cfg: Config, path: str) -> tuple[Experiment, str]:
-    """One experiment with velocity per `data.velocity`, and its fingerprint."""
+def _load_one(
+    cfg: Config, path: str, warnings: list[str] | None = None
+) -> tuple[Experiment, str]:
+    """One experiment with velocity per `data.velocity`, and its fingerprint.
+
+    `torchfric.data.data_warnings` about the record (on the file's own columns, before the
+    velocity is rebuilt) are appended to `warnings`; when the velocity cannot be rebuilt they
+    are folded into the error instead.
+    """
     d = cfg.data
     if path.startswith(RIG_PREFIX):
         from .rig import rig_experiment
@@ -66,6 +75,9 @@ def _load_one(cfg: Config, path: str) -> tuple[Experiment, str]:
             None if exp.qdot is None else exp.qdot * factor,
             name=exp.name,
         )
+    found = data_warnings(exp, velocity=d.velocity, velocity_cutoff_hz=d.velocity_cutoff_hz)
+    if warnings is not None:
+        warnings.extend(found)
     if d.velocity == "measured":
         if exp.qdot is None:
             raise TorchfricError(
@@ -73,20 +85,28 @@ def _load_one(cfg: Config, path: str) -> tuple[Experiment, str]:
                 "or set data.velocity = 'highpass'"
             )
     else:
-        exp = exp.with_velocity(d.velocity, cutoff_hz=d.velocity_cutoff_hz)
+        try:
+            exp = exp.with_velocity(d.velocity, cutoff_hz=d.velocity_cutoff_hz)
+        except TorchfricError as err:
+            if not found:
+                raise
+            raise TorchfricError(f"{'; '.join(found)} (the velocity reconstruction: {err})") from None
     return exp, digest
 
 
 def load_data(
-    cfg: Config,
+    cfg: Config, *, warnings: list[str] | None = None
 ) -> tuple[list[Experiment], list[Experiment], list[Experiment], dict[str, str]]:
-    """(train, validation, test) experiments and SHA-256 fingerprints by path."""
+    """(train, validation, test) experiments and SHA-256 fingerprints by path.
+
+    Warnings about the identification and validation records are appended to `warnings`.
+    """
     prints: dict[str, str] = {}
     groups = []
-    for paths in (cfg.data.train, cfg.data.validation, cfg.data.test):
+    for group, paths in enumerate((cfg.data.train, cfg.data.validation, cfg.data.test)):
         exps = []
         for p in paths:
-            exp, digest = _load_one(cfg, p)
+            exp, digest = _load_one(cfg, p, warnings if group < 2 else None)
             if cfg.data.input_delay:
                 exp = exp.delay_input(cfg.data.input_delay)
             prints[p] = digest
@@ -95,6 +115,71 @@ def load_data(
     if not groups[0]:
         raise TorchfricError("data.train is empty: give at least one identification file")
     return groups[0], groups[1], groups[2], prints
+
+
+def check_resources(cfg: Config, train: list[Experiment]) -> None:
+    """Refuse, before anything runs, a model or ensemble too large for this machine's memory."""
+    n_theta = config_model(cfg, train).get_theta().numel()
+    samples = sum(e.n for e in train)
+    size = f"model.size = {cfg.model.size} ({n_theta} parameters)"
+    if cfg.model.init == "prefit":
+        require_memory(
+            prefit_bytes(n_theta, samples),
+            f"the pre-fit of {size} over {samples} samples",
+            "lower model.size, or use data.stop to fit on fewer samples",
+        )
+    est = cfg.estimator
+    if est.method == "ekf":
+        members = est.ensemble_spec(cfg.seed).size if est.ensemble > 0 else 1
+        what = (
+            f"an EKF ensemble of {members} filters (estimator.ensemble = {est.ensemble} starts × "
+            f"{len(est.ensemble_q_scales)} Q × {len(est.ensemble_r_scales)} R scales) with {size}"
+            if est.ensemble > 0
+            else f"the EKF with {size}"
+        )
+        require_memory(
+            ekf_bytes(n_theta, members), what, "lower estimator.ensemble or model.size"
+        )
+
+
+def result_warnings(
+    cfg: Config, final: ArmModel, metrics: dict[str, Any], init_kind: str
+) -> list[str]:
+    """Plain warnings about a result that is almost certainly wrong (`metrics.json` "warnings")."""
+    out = []
+    inertia, start = metrics["inertia"], metrics.get("initial_inertia")
+    source = "pre-fit" if init_kind == "prefit" else "initial value"
+    if start and inertia > 0 and max(inertia / start, start / inertia) > 3.0:
+        out.append(
+            f"inertia {inertia:.4g} is {inertia / start:.3g}× the {source}'s {start:.4g}: the "
+            "estimate moved far from what the data's inverse dynamics say; check model.c_m, the "
+            "units of t and q, and the filter's tuning (estimator.r, estimator.p0_theta)"
+        )
+    theta = final.get_theta().detach()
+    bound = cfg.estimator.theta_bound
+    at_bound = [
+        n for n, v in zip(final.theta_names, theta.tolist(), strict=True) if abs(v) >= 0.5 * bound
+    ]
+    if at_bound or not inertia > 1e-12:
+        out.append(
+            f"parameter(s) {', '.join(at_bound) or 'inertia'} at a bound (|θ| near "
+            f"estimator.theta_bound = {bound:g}, or inertia ≈ 0): the model is not physical"
+        )
+    for group in ("validation", "test"):
+        for name, m in metrics.get(group, {}).items():
+            fit = m.get("fit_q")
+            if fit is None or not fit == fit or fit < 0.0:
+                out.append(
+                    f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
+                    "worse than a constant); the model does not simulate this record"
+                )
+    if metrics.get("converged") is False and metrics.get("passes", 0) >= cfg.estimator.passes:
+        out.append(
+            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) without "
+            f"converging to estimator.tolerance = {cfg.estimator.tolerance:g}; raise "
+            "estimator.passes or check the tuning"
+        )
+    return out
 
 
 # -- model ---------------------------------------------------------------------------------------
@@ -270,16 +355,26 @@ class _RunLogger(EKFCallback):
         self, path: pathlib.Path, model: ArmModel, state: dict[str, Any], metrics: dict[str, Any]
     ) -> None:
         """An incomplete checkpoint (pass/epoch snapshot, last good pass), written atomically."""
+        run_info = {
+            "init": getattr(self, "init_kind", ""),
+            "initial_inertia": getattr(self, "initial_inertia", None),
+        }
         payload = build_checkpoint(
             model,
             config=self.cfg,
             estimator_state=state,
-            metrics=metrics,
+            metrics=json_safe({**run_info, **metrics})[0],
             data_fingerprints=self.fingerprints,
             name=self.cfg.name,
             complete=False,
         )
         save_checkpoint(path, payload)
+        if path.parent.name == "passes":
+            # Keep the two newest pass/epoch snapshots (the newest, and one before it in case
+            # the newest is damaged): each holds the whole history, so keeping all of them would
+            # grow with the square of the number of passes.
+            for older in sorted(path.parent.glob("*.pt"), key=_snapshot_index)[:-2]:
+                older.unlink(missing_ok=True)
 
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
         fits = self.log_model(record.index, result.model, ekf_scalars(record))
@@ -323,11 +418,17 @@ def _estimator_payload(result: EKFResult, pass_index: int) -> dict[str, Any]:
 def _latest_snapshot(run_dir: pathlib.Path) -> pathlib.Path | None:
     folder = run_dir / "passes"
     snaps = (
-        sorted(folder.glob("pass_*.pt"))
-        or sorted(folder.glob("epoch_*.pt"))
-        or sorted(folder.glob("ensemble_*.pt"))
+        sorted(folder.glob("pass_*.pt"), key=_snapshot_index)
+        or sorted(folder.glob("epoch_*.pt"), key=_snapshot_index)
+        or sorted(folder.glob("ensemble_*.pt"), key=_snapshot_index)
     )
     return snaps[-1] if snaps else None
+
+
+def _snapshot_index(path: pathlib.Path) -> int:
+    """The pass or epoch number in a snapshot's name (``pass_012.pt`` → 12)."""
+    digits = path.stem.rpartition("_")[2]
+    return int(digits) if digits.isdigit() else -1
 
 
 def _provenance(cfg: Config, init_kind: str) -> str:
@@ -598,56 +699,126 @@ def _run_output_error(
     return result.model, _oe_payload(result, result.epochs), extra
 
 
+def _default_say(msg: str) -> None:
+    sys.stderr.write(msg if msg.startswith("\r") or msg.endswith("\n") else msg + "\n")
+    sys.stderr.flush()
+
+
+def _check_checkpoint_target(path: pathlib.Path) -> None:
+    """``--checkpoint PATH`` may replace only an earlier torchfric checkpoint, never other files."""
+    if path.is_dir():
+        raise TorchfricError(f"--checkpoint {path} is a directory; give a .pt file name")
+    if path.exists():
+        try:
+            read_checkpoint(path)
+        except TorchfricError:
+            raise TorchfricError(
+                f"--checkpoint {path} exists and is not a torchfric checkpoint; torchfric "
+                "replaces only its own checkpoints there: give another file name"
+            ) from None
+
+
+def _snapshot_label(snap: pathlib.Path | None) -> str | None:
+    if snap is None:
+        return None
+    kind, _, index = snap.stem.partition("_")
+    return f"{'pass' if kind in ('pass', 'ensemble') else kind} {int(index)}"
+
+
+def _resume_state(run: pathlib.Path, cfg: Config) -> dict[str, Any]:
+    snap = _latest_snapshot(run)
+    if snap is None:
+        raise TorchfricError(
+            f"--resume: no pass snapshots in {run / 'passes'}; start the run without --resume"
+        )
+    saved = read_checkpoint(snap)
+    if saved["config"] != cfg.to_dict():
+        raise TorchfricError(
+            f"--resume: the config differs from the one saved in {run}; resume with the same "
+            "config and --set values"
+        )
+    return saved
+
+
 def train(
     cfg: Config,
     *,
     run_dir: str | pathlib.Path | None = None,
     resume: bool = False,
+    overwrite: bool = False,
+    checkpoint: str | pathlib.Path | None = None,
     say: Printer | None = None,
 ) -> TrainResult:
     """Run the configured identification end to end; returns the fitted model and metrics.
 
-    With `resume`, continue from the last completed pass snapshot in the run directory (the
-    result equals an uninterrupted run's).
+    Everything is checked (config, data, memory, the ``checkpoint`` target) before anything is
+    written. The run writes only inside its run directory (`torchfric.rundir.claim_run_dir`:
+    ``out_dir/name`` or a fresh ``name-2``…, or `run_dir`), the final checkpoint included as
+    ``<run directory>/<name>.pt``; `checkpoint` copies it to one more, explicit path. With
+    `resume`, continue from the last completed pass snapshot in `run_dir` (the result equals an
+    uninterrupted run's). Ctrl-C raises `RunInterrupted` naming the run to resume.
     """
-    if say is None:
-
-        def say(msg: str) -> None:
-            sys.stderr.write(msg if msg.startswith("\r") or msg.endswith("\n") else msg + "\n")
-            sys.stderr.flush()
-
+    say = say or _default_say
     torch.manual_seed(cfg.seed)
-    run = pathlib.Path(run_dir) if run_dir is not None else pathlib.Path(cfg.out_dir) / cfg.name
-    if resume:
-        snap = _latest_snapshot(run)
-        if snap is None:
-            raise TorchfricError(
-                f"--resume: no pass snapshots in {run / 'passes'}; start the run without --resume"
-            )
-        saved = read_checkpoint(snap)
-        if saved["config"] != cfg.to_dict():
-            raise TorchfricError(
-                f"--resume: the config differs from the one saved in {run}; resume with the same config and --set values"
-            )
-    run.mkdir(parents=True, exist_ok=True)
-    if not resume:
-        # A fresh run owns its directory: stale snapshots would be picked up by a later
-        # --resume, and old event files would mix two runs' curves in TensorBoard.
-        stale = [*(run / "passes").glob("*.pt"), *run.glob("events.out.tfevents.*")]
-        stale += [f for f in (run / "metrics.json", run / "last_good.pt") if f.exists()]
-        for f in stale:
-            f.unlink()
-        if stale:
-            say(
-                f"  starting fresh in {run}: removed {len(stale)} file(s) of an earlier run (use --resume to continue one)"
-            )
-    (run / "config.toml").write_text(cfg.to_toml())
+    default = pathlib.Path(cfg.out_dir) / cfg.name
+    explicit = pathlib.Path(run_dir) if run_dir is not None else None
+    saved = _resume_state(explicit or default, cfg) if resume else None
+    if checkpoint is not None:
+        checkpoint = pathlib.Path(checkpoint)
+        _check_checkpoint_target(checkpoint)
     t_start = time.perf_counter()
-    train_exps, val_exps, test_exps, fingerprints = load_data(cfg)
+    warnings: list[str] = []
+    train_exps, val_exps, test_exps, fingerprints = load_data(cfg, warnings=warnings)
+    check_resources(cfg, train_exps)
+    model, init_kind = (None, "resume") if resume else initial_model(cfg, train_exps)
+    claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)
+    with locked(*([claim.replaces] if claim.replaces else []), claim.path):
+        try:
+            result = _train_in(
+                cfg, claim, saved, model, init_kind, (train_exps, val_exps, test_exps),
+                fingerprints, warnings, say, t_start,
+            )
+        except KeyboardInterrupt:
+            snap = _latest_snapshot(claim.path)
+            label = _snapshot_label(snap)
+            raise RunInterrupted(
+                f"interrupted: {'the last completed ' + label + ' is saved in ' + str(snap) if snap else 'no pass had completed yet'}",
+                run_dir=claim.path if snap else None,
+                last=label,
+            ) from None
+    if checkpoint is not None:
+        save_checkpoint(checkpoint, read_checkpoint(result.checkpoint))
+        say(f"  copied the checkpoint to {checkpoint} (--checkpoint)")
+    return result
+
+
+def _train_in(
+    cfg: Config,
+    claim: RunDir,
+    saved: dict[str, Any] | None,
+    model: ArmModel | None,
+    init_kind: str,
+    data: tuple[list[Experiment], list[Experiment], list[Experiment]],
+    fingerprints: dict[str, str],
+    warnings: list[str],
+    say: Printer,
+    t_start: float,
+) -> TrainResult:
+    """The run itself, in the claimed and locked directory `claim.path`."""
+    run = claim.path
+    train_exps, val_exps, test_exps = data
+    atomic_write_text(run / "config.toml", cfg.to_toml())
     say(
         f"torchfric: {cfg.name}: {len(train_exps)} identification experiment(s), "
-        f"{sum(e.n for e in train_exps)} samples; run directory {run}"
+        f"{sum(e.n for e in train_exps)} samples; run directory {claim.final}"
     )
+    for w in warnings:
+        say(f"  warning: {w}")
+    if not val_exps:
+        say(
+            "  no validation data: the model is checked on the identification data only; "
+            "add held-out records as data.validation"
+        )
 
     from torch.utils.tensorboard import SummaryWriter
 
@@ -655,27 +826,31 @@ def train(
     v_max = 1.2 * max(float(e.qdot.abs().max()) for e in train_exps if e.qdot is not None)
     logger = _RunLogger(cfg, run, val_exps, fingerprints, writer, say, v_max)
     try:
-        if resume:
+        if saved is not None:
             model = ArmModel.from_spec(saved["model"])
             est = saved["estimator"]["state"]
             if "theta" in est:  # an ensemble snapshot holds every member's θ instead
                 model.set_theta(est["theta"])
             init_kind = saved["metrics"].get("init", "resume")
+            initial_inertia = saved["metrics"].get("initial_inertia")
             say(
-                f"  resuming after {'epoch' if est['method'] == 'output_error' else 'pass'} {est.get('pass', est.get('epoch'))}"
+                f"  resuming after {'epoch' if est['method'] == 'output_error' else 'pass'} "
+                f"{est.get('pass', est.get('epoch'))}"
             )
         else:
+            assert model is not None
             est = None
-            model, init_kind = initial_model(cfg, train_exps)
+            initial_inertia = float(model.inertia.detach())
             fits = logger.log_model(0, model, {})
             fit_txt = ", ".join(
                 f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
             )
             say(
-                f"  pass 0 ({init_kind}): inertia {float(model.inertia.detach()):.6g}"
+                f"  pass 0 ({init_kind}): inertia {initial_inertia:.6g}"
                 + (f", {fit_txt}" if fit_txt else "")
             )
         logger.init_kind = init_kind
+        logger.initial_inertia = initial_inertia
         if cfg.estimator.method == "ekf":
             final, state, extra = _run_ekf(cfg, model, train_exps, logger, est, run)
         else:
@@ -690,6 +865,7 @@ def train(
             **extra,
             "seconds": seconds,
             "inertia": float(final.inertia.detach()),
+            "initial_inertia": initial_inertia,
             "parameters": final.physical_parameters(),
             "dt": train_exps[0].dt,
             "validation": {},
@@ -698,24 +874,28 @@ def train(
         for group, exps in (("validation", val_exps), ("test", test_exps)):
             for name, score in evaluate_model(final, exps, cfg).items():
                 metrics[group][name] = score.to_dict()
-        (run / "metrics.json").write_text(json.dumps(metrics, indent=2))
-        ckpt = pathlib.Path(cfg.checkpoint_dir) / f"{cfg.name}.pt"
+        metrics["warnings"] = warnings + result_warnings(cfg, final, metrics, init_kind)
+        write_json(run / "metrics.json", metrics)
         payload = build_checkpoint(
             final,
             config=cfg,
             estimator_state=state,
-            metrics=metrics,
+            metrics=json_safe(metrics)[0],
             data_fingerprints=fingerprints,
             name=cfg.name,
             complete=True,
         )
-        save_checkpoint(ckpt, payload)
-        say(
-            f"  done in {seconds:.1f} s ({metrics['estimator']}): inertia {metrics['inertia']:.6g}; "
-            f"checkpoint {ckpt}; metrics {run / 'metrics.json'}"
-        )
-        for name, m in metrics["validation"].items():
-            say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
-        return TrainResult(final, run, ckpt, metrics, list(state.get("history", [])))
+        save_checkpoint(run / f"{cfg.name}.pt", payload)
     finally:
         writer.close()
+    folder = claim.finish()
+    ckpt = folder / f"{cfg.name}.pt"
+    say(
+        f"  done in {seconds:.1f} s ({metrics['estimator']}): inertia {metrics['inertia']:.6g}; "
+        f"checkpoint {ckpt}; metrics {folder / 'metrics.json'}"
+    )
+    for name, m in metrics["validation"].items():
+        say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+    for w in metrics["warnings"][len(warnings) :]:
+        say(f"  warning: {w}")
+    return TrainResult(final, folder, ckpt, metrics, list(state.get("history", [])))

@@ -1,0 +1,94 @@
+"""The ``TORCHFRIC_*`` environment variables, read and checked in one place.
+
+=========================  ==========================================================  =======
+variable                   meaning                                                     default
+=========================  ==========================================================  =======
+TORCHFRIC_THREADS          torch's intra-op threads for the CLI (an integer >= 1)      1
+TORCHFRIC_NATIVE           1: run the filter as generated C; 0: the torch paths        1
+TORCHFRIC_NATIVE_THREADS   threads that share an ensemble's members (integer >= 1)     cores
+TORCHFRIC_CACHE            folder of the compiled-code cache (created private, 0700)   ~/.cache/torchfric
+=========================  ==========================================================  =======
+
+A value that does not parse is a one-line `TorchfricError` naming the variable, the value (cut
+to 200 characters) and what is allowed; an unknown ``TORCHFRIC_*`` name is reported with the
+closest known one.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import warnings
+from collections.abc import Mapping
+from typing import Any
+
+from .errors import TorchfricError
+
+__all__ = ["KNOWN", "check_environment"]
+
+KNOWN: tuple[str, ...] = (
+    "TORCHFRIC_THREADS",
+    "TORCHFRIC_NATIVE",
+    "TORCHFRIC_NATIVE_THREADS",
+    "TORCHFRIC_CACHE",
+)
+
+
+def _cut(text: str, limit: int = 200) -> str:
+    return text if len(text) <= limit else f"{text[: limit - 40]}… ({len(text)} characters)"
+
+
+def _positive_int(name: str, text: str) -> int:
+    try:
+        value = int(text.strip())
+    except ValueError:
+        value = 0
+    if not 1 <= value <= 4096:
+        raise TorchfricError(
+            f"{name}={_cut(text)!r} is not a thread count; give an integer from 1 to 4096, or "
+            f"unset it"
+        )
+    return value
+
+
+def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The checked settings (missing ones at their defaults); raises on a bad value."""
+    env = os.environ if env is None else env
+    out: dict[str, Any] = {
+        "TORCHFRIC_THREADS": 1,
+        "TORCHFRIC_NATIVE": True,
+        "TORCHFRIC_NATIVE_THREADS": None,
+        "TORCHFRIC_CACHE": None,
+    }
+    for name, text in env.items():
+        if not name.startswith("TORCHFRIC_"):
+            continue
+        if name in ("TORCHFRIC_THREADS", "TORCHFRIC_NATIVE_THREADS"):
+            out[name] = _positive_int(name, text)
+        elif name == "TORCHFRIC_NATIVE":
+            if text.strip() not in ("0", "1"):
+                raise TorchfricError(
+                    f"TORCHFRIC_NATIVE={_cut(text)!r} is not allowed; use 1 (generated C, the "
+                    "default) or 0 (the torch paths only), or unset it"
+                )
+            out[name] = text.strip() == "1"
+        elif name == "TORCHFRIC_CACHE":
+            if not text.strip() or "\0" in text:
+                raise TorchfricError(
+                    f"TORCHFRIC_CACHE={_cut(text)!r} is not a folder path; give a folder you own, "
+                    "or unset it for ~/.cache/torchfric"
+                )
+            if os.path.exists(text) and not os.path.isdir(text):
+                raise TorchfricError(
+                    f"TORCHFRIC_CACHE={_cut(text)!r} is a file, not a folder; give a folder you "
+                    "own, or unset it"
+                )
+            out[name] = text
+        else:
+            close = difflib.get_close_matches(name, KNOWN, n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            warnings.warn(
+                f"{_cut(name)} is not a torchfric setting{hint}; known: {', '.join(KNOWN)}",
+                stacklevel=2,
+            )
+    return out
