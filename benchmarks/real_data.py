@@ -1,6 +1,7 @@
 """torchfric on real measured data (issue 7): EMPS, HSM150 and the unbalanced disc. Prints a table.
 
     python benchmarks/real_data.py                         # train every config below, then score
+    python benchmarks/real_data.py --update-checkpoints    # ... and copy them over checkpoints/
     python benchmarks/real_data.py emps                    # one data set (emps | hsm150 | disc)
     python benchmarks/real_data.py --from-checkpoints      # score the committed checkpoints only
     python benchmarks/real_data.py --from-checkpoints --json
@@ -215,17 +216,26 @@ REFERENCES = {"emps": emps_published_model, "disc": disc_shipped_model}
 
 
 # -------------------------------------------------------------------------------------- driver
-def train_all(sets: list[str]) -> None:
+def train_all(sets: list[str], *, update: bool = False) -> dict[str, pathlib.Path]:
+    """Train every run of `sets` into a fresh run directory; {name: its checkpoint}.
+
+    With `update`, each final checkpoint is also copied over the committed
+    ``checkpoints/NAME.pt`` (the explicit ``--checkpoint`` step).
+    """
     from torchfric.runner import train
 
+    out = {}
     for key in sets:
         for name in RUNS[key]:
             cfg = Config.load(CONFIGS / f"{name}.toml")
             sys.stderr.write(f"== training {name}\n")
-            train(cfg)
+            target = ROOT / "checkpoints" / f"{name}.pt" if update else None
+            out[name] = train(cfg, checkpoint=target).checkpoint
+    return out
 
 
-def score_all(sets: list[str]) -> dict[str, Any]:
+def score_all(sets: list[str], paths: dict[str, pathlib.Path] | None = None) -> dict[str, Any]:
+    """Score each run's checkpoint: `paths[name]`, else the committed checkpoints/NAME.pt."""
     out: dict[str, Any] = {}
     for key in sets:
         rows: dict[str, Any] = {}
@@ -236,7 +246,7 @@ def score_all(sets: list[str]) -> dict[str, Any]:
             if key == "disc":  # SOURCE.md: the shipped model fits better with u one sample late
                 rows["published, u 1 sample late"] = disc_score(disc_shipped_model(), 1)
         for name in RUNS[key]:
-            path = ROOT / "checkpoints" / f"{name}.pt"
+            path = (paths or {}).get(name, ROOT / "checkpoints" / f"{name}.pt")
             if not path.is_file():
                 rows[name] = {"missing": str(path)}
                 continue
@@ -315,6 +325,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("sets", nargs="*", help=f"data sets: {', '.join(RUNS)} (default: all)")
     parser.add_argument("--from-checkpoints", action="store_true", help="score checkpoints only")
+    parser.add_argument(
+        "--update-checkpoints",
+        action="store_true",
+        help="copy each new run's checkpoint over the committed checkpoints/NAME.pt",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON instead of tables")
     args = parser.parse_args(argv)
     torch.set_default_dtype(torch.float64)
@@ -326,9 +341,8 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [s for s in sets if s not in RUNS]
     if unknown:
         parser.error(f"unknown data set(s) {unknown}; choose from {', '.join(RUNS)}")
-    if not args.from_checkpoints:
-        train_all(sets)
-    results = score_all(sets)
+    paths = None if args.from_checkpoints else train_all(sets, update=args.update_checkpoints)
+    results = score_all(sets, paths)
     if args.json:
         print(json.dumps(results, indent=2))
     else:

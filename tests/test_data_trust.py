@@ -314,7 +314,7 @@ def test_rig_record_with_t_in_milliseconds_is_flagged() -> None:
         assert text.startswith(
             "ms: sample time 1 s (1 Hz) looks like milliseconds in a seconds column"
         )
-        assert text.endswith("convert t to seconds (t/1000) or set data.time_step in seconds")
+        assert text.endswith("convert the t column to seconds (t/1000)")
         assert "\n" not in text
     # a cut-off below Nyquist was chosen for this sample time: trust it
     assert data_warnings(exp, velocity_cutoff_hz=0.2) == []

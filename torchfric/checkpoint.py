@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import io
 import os
 import pathlib
 import pickle
-import secrets
 import zipfile
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
@@ -40,6 +40,7 @@ from torch import Tensor
 
 from .arm import ArmModel
 from .errors import TorchfricError
+from .rundir import atomic_write_bytes
 
 if TYPE_CHECKING:
     from .config import Config
@@ -181,16 +182,6 @@ def build_checkpoint(
     }
 
 
-def _fsync_dir(folder: pathlib.Path) -> None:
-    if os.name != "posix":  # directories cannot be opened for fsync on Windows
-        return
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(path: str | os.PathLike[str], payload: Mapping[str, Any]) -> None:
     """Write `payload` to `path` atomically (temp file, fsync, rename, fsync of the folder).
 
@@ -209,27 +200,9 @@ def save_checkpoint(path: str | os.PathLike[str], payload: Mapping[str, Any]) ->
         raise TorchfricError(
             f"cannot create folder {str(target.parent)!r}: {exc.strerror}"
         ) from None
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    try:
-        # O_EXCL: never clobber someone else's file; 0o666 & ~umask like an ordinary file.
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        with os.fdopen(fd, "wb") as f:
-            torch.save(clean, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, target)
-    except BaseException as exc:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        if isinstance(exc, OSError):
-            raise TorchfricError(
-                f"cannot write checkpoint {str(target)!r}: {exc.strerror or exc}; the previous "
-                "file (if any) is unchanged"
-            ) from exc
-        raise
-    _fsync_dir(target.parent)
+    buffer = io.BytesIO()
+    torch.save(clean, buffer)
+    atomic_write_bytes(target, buffer.getvalue(), what="checkpoint")
 
 
 def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:

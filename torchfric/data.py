@@ -34,6 +34,8 @@ import torch
 from torch import Tensor
 
 from .errors import TorchfricError
+from .resources import available_memory as _available_memory
+from .resources import format_bytes as _format_bytes
 
 __all__ = [
     "Experiment",
@@ -562,54 +564,6 @@ _MEMORY_FIX = (
     "shorten the file (data.start/data.stop apply only after loading) or split it into several "
     "files"
 )
-
-
-def _format_bytes(n: float) -> str:
-    for unit, scale in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
-        if n >= scale:
-            value = n / scale
-            return f"{value:.1f} {unit}" if value < 100 else f"{value:.0f} {unit}"
-    return f"{int(n)} B"
-
-
-def _read_int(path: str) -> int | None:
-    try:
-        with open(path, encoding="ascii") as f:
-            return int(f.read().strip())
-    except (OSError, ValueError):  # absent, unreadable, or "max" (no limit)
-        return None
-
-
-def _available_memory() -> int | None:
-    """Bytes a new allocation can get: MemAvailable (else free pages), capped by a cgroup limit.
-
-    None when the platform tells neither (then no memory check is made).
-    """
-    avail: int | None = None
-    try:
-        with open("/proc/meminfo", "rb") as f:
-            for line in f:
-                if line.startswith(b"MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-                    break
-    except (OSError, ValueError, IndexError):
-        pass
-    if avail is None:
-        try:
-            avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (AttributeError, ValueError, OSError):
-            return None
-    for limit_file, usage_file in (
-        ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),  # cgroup v2
-        (
-            "/sys/fs/cgroup/memory/memory.limit_in_bytes",
-            "/sys/fs/cgroup/memory/memory.usage_in_bytes",
-        ),
-    ):
-        limit, usage = _read_int(limit_file), _read_int(usage_file)
-        if limit is not None and usage is not None and limit < 1 << 60:
-            avail = min(avail, max(limit - usage, 0))
-    return avail
 
 
 def _csv_array_bytes(p: pathlib.Path, size: int) -> int:

@@ -66,12 +66,12 @@ def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
         if name in ("TORCHFRIC_THREADS", "TORCHFRIC_NATIVE_THREADS"):
             out[name] = _positive_int(name, text)
         elif name == "TORCHFRIC_NATIVE":
-            if text.strip() not in ("0", "1"):
+            if text.strip() not in ("0", "1", ""):
                 raise TorchfricError(
                     f"TORCHFRIC_NATIVE={_cut(text)!r} is not allowed; use 1 (generated C, the "
                     "default) or 0 (the torch paths only), or unset it"
                 )
-            out[name] = text.strip() == "1"
+            out[name] = text.strip() != "0"
         elif name == "TORCHFRIC_CACHE":
             if not text.strip() or "\0" in text:
                 raise TorchfricError(

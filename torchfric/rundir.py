@@ -64,7 +64,7 @@ _OURS = re.compile(
 
 
 # -- atomic files ------------------------------------------------------------------------------
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes, *, what: str = "") -> None:
     """Write `data` to `path` via a temporary file and a rename; never a half-written file.
 
     The temporary file sits beside the target and is removed whatever happens (an error,
@@ -79,6 +79,7 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, target)
+        _fsync_dir(target.parent)
     except BaseException as exc:
         try:
             os.unlink(tmp)
@@ -86,10 +87,21 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
             pass
         if isinstance(exc, OSError):
             raise TorchfricError(
-                f"cannot write {target}: {exc.strerror or exc}; the previous file (if any) is "
-                "unchanged"
+                f"cannot write {what + ' ' if what else ''}{target}: {exc.strerror or exc}; the "
+                "previous file (if any) is unchanged"
             ) from None
         raise
+
+
+def _fsync_dir(folder: pathlib.Path) -> None:
+    """Make a rename in `folder` durable (POSIX; directories cannot be fsync'ed on Windows)."""
+    if os.name != "posix":
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
