@@ -57,11 +57,15 @@ def _user_csv(
         u = np.clip(u, -lim, lim)
     columns = [a["t"][:n] * t_scale, u, a["q"][:n]] + ([a["qdot_true"][:n]] if qdot else [])
     header = "t,u,q,qdot" if qdot else "t,u,q"
-    np.savetxt(path, np.column_stack(columns), delimiter=",", header=header, comments="", fmt="%.17g")
+    np.savetxt(
+        path, np.column_stack(columns), delimiter=",", header=header, comments="", fmt="%.17g"
+    )
     return path
 
 
-def _user_config(tmp: pathlib.Path, data: pathlib.Path, model: str = "c_m = 16.0\n") -> pathlib.Path:
+def _user_config(
+    tmp: pathlib.Path, data: pathlib.Path, model: str = "c_m = 16.0\n"
+) -> pathlib.Path:
     cfg = tmp / "mine.toml"
     cfg.write_text(
         f'name = "mine"\nout_dir = "{(tmp / "runs").as_posix()}"\n[data]\ntrain = "{data.as_posix()}"\n'
@@ -89,7 +93,9 @@ def test_rig_defaults_apply_to_rig_data_only(tmp_path: pathlib.Path) -> None:
     assert mine.model.c_m == 0.5 and mine.data.validation == ()
     for key in ("validation", "test"):
         with pytest.raises(TorchfricError, match=rf"data\.{key} = .*rig:.*your own data"):
-            Config.loads(f'[data]\ntrain = "{data}"\n{key} = ["rig:validation"]\n[model]\nc_m = 1\n')
+            Config.loads(
+                f'[data]\ntrain = "{data}"\n{key} = ["rig:validation"]\n[model]\nc_m = 1\n'
+            )
     # A rig config retargeted at a user's file with --set keeps no rig validation silently.
     with pytest.raises(TorchfricError, match="data.validation"):
         Config.load(

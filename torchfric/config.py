@@ -505,8 +505,10 @@ class EstimatorConfig:
         c.integer("passes", ge=1)
         if self.passes > MAX_PASSES:
             c.range_error(
-                "passes", self.passes, f"an integer from 1 to {MAX_PASSES} (estimator.tolerance "
-                "stops earlier once θ settles; the paper uses 10)"
+                "passes",
+                self.passes,
+                f"an integer from 1 to {MAX_PASSES} (estimator.tolerance stops earlier once θ "
+                "settles; the paper uses 10)",
             )
         c.number("tolerance", ge=0.0)
         c.numbers("p0_state", length=2, ge=0.0)
@@ -872,7 +874,7 @@ def _unknown_key(dotted: str, section: str, value: Any = None) -> NoReturn:
     sections = ", ".join(f"[{s}]" for s in _SECTIONS)
     if dotted == "checkpoint_dir":
         raise TorchfricError(
-            'checkpoint_dir was removed: a run writes its checkpoint inside its run directory '
+            "checkpoint_dir was removed: a run writes its checkpoint inside its run directory "
             "only; delete the key, and copy the final checkpoint elsewhere with "
             "`torchfric train CONFIG --checkpoint PATH`"
         )

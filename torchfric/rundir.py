@@ -244,7 +244,9 @@ def claim_run_dir(
         return RunDir(folder)
     foreign = foreign_entries(folder) if _is_run(folder) else entries
     if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        shown = ", ".join(foreign[:5]) + (
+            f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
+        )
         raise TorchfricError(
             f"--out {folder} holds files torchfric did not write ({shown}); a run never writes "
             "over them: give an empty or new directory"

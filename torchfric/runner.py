@@ -42,9 +42,7 @@ Printer = Callable[[str], None]
 
 
 # -- data ----------------------------------------------------------------------------------------
-def _load_one(
-    cfg: Config, path: str, warnings: list[str] | None = None
-) -> tuple[Experiment, str]:
+def _load_one(cfg: Config, path: str, warnings: list[str] | None = None) -> tuple[Experiment, str]:
     """One experiment with velocity per `data.velocity`, and its fingerprint.
 
     `torchfric.data.data_warnings` about the record (on the file's own columns, before the
@@ -90,7 +88,9 @@ def _load_one(
         except TorchfricError as err:
             if not found:
                 raise
-            raise TorchfricError(f"{'; '.join(found)} (the velocity reconstruction: {err})") from None
+            raise TorchfricError(
+                f"{'; '.join(found)} (the velocity reconstruction: {err})"
+            ) from None
     return exp, digest
 
 
@@ -137,9 +137,7 @@ def check_resources(cfg: Config, train: list[Experiment]) -> None:
             if est.ensemble > 0
             else f"the EKF with {size}"
         )
-        require_memory(
-            ekf_bytes(n_theta, members), what, "lower estimator.ensemble or model.size"
-        )
+        require_memory(ekf_bytes(n_theta, members), what, "lower estimator.ensemble or model.size")
 
 
 def result_warnings(
@@ -173,7 +171,11 @@ def result_warnings(
                     f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
                     "worse than a constant); the model does not simulate this record"
                 )
-    if metrics.get("converged") is False and metrics.get("passes", 0) >= cfg.estimator.passes:
+    if (
+        cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes
+        and metrics.get("converged") is False
+        and metrics.get("passes", 0) >= cfg.estimator.passes
+    ):
         out.append(
             f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) without "
             f"converging to estimator.tolerance = {cfg.estimator.tolerance:g}; raise "
@@ -775,14 +777,27 @@ def train(
     with locked(*([claim.replaces] if claim.replaces else []), claim.path):
         try:
             result = _train_in(
-                cfg, claim, saved, model, init_kind, (train_exps, val_exps, test_exps),
-                fingerprints, warnings, say, t_start,
+                cfg,
+                claim,
+                saved,
+                model,
+                init_kind,
+                (train_exps, val_exps, test_exps),
+                fingerprints,
+                warnings,
+                say,
+                t_start,
             )
         except KeyboardInterrupt:
             snap = _latest_snapshot(claim.path)
             label = _snapshot_label(snap)
+            where = (
+                f"the last completed {label} is saved in {snap}"
+                if snap
+                else "no pass had completed yet"
+            )
             raise RunInterrupted(
-                f"interrupted: {'the last completed ' + label + ' is saved in ' + str(snap) if snap else 'no pass had completed yet'}",
+                f"interrupted: {where}",
                 run_dir=claim.path if snap else None,
                 last=label,
             ) from None
