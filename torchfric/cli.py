@@ -74,7 +74,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     }
     if args.json:
         print(json.dumps(json_safe(summary)[0], indent=2, allow_nan=False))
-    elif not args.quiet:
+    elif args.quiet:  # no progress and no summary, but a result to distrust is still said
+        for w in summary["warnings"]:
+            sys.stderr.write(f"warning: {w}\n")
+    else:
         print(f"inertia     {summary['inertia']:.6g}")
         for name, m in summary["validation"].items():
             print(f"validation  {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")

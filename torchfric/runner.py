@@ -911,6 +911,4 @@ def _train_in(
     )
     for name, m in metrics["validation"].items():
         say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
-    for w in metrics["warnings"][len(warnings) :]:
-        say(f"  warning: {w}")
     return TrainResult(final, folder, ckpt, metrics, list(state.get("history", [])))
