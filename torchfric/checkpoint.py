@@ -317,12 +317,6 @@ def _migrate_format(ckpt: dict[str, Any], version: int, path: pathlib.Path) -> d
     return ckpt
 
 
-# Estimator keys that older versions wrote for every method but that the current schema accepts
-# only with method = "ekf" (output error runs no ensemble): those versions stored their own
-# defaults there (ensemble = 0, ensemble_q_scales = ensemble_r_scales = [1.0]).
-_EKF_ONLY_KEYS = ("ensemble", "ensemble_spread", "ensemble_q_scales", "ensemble_r_scales")
-
-
 def checkpoint_config(raw: Mapping[str, Any]) -> Config:
     """The config stored in checkpoint dict `raw` (`read_checkpoint`), migrated to the current
     schema; ``Config()`` when the checkpoint holds none.
@@ -363,28 +357,20 @@ def checkpoint_config(raw: Mapping[str, Any]) -> Config:
 
 def _migrate_config(stored: Mapping[str, Any]) -> dict[str, Any]:
     """`stored` (a `Config.to_dict` of some torchfric version) reduced to the keys the current
-    schema knows, with the ensemble keys of non-EKF runs dropped."""
-    import dataclasses
+    schema knows (`torchfric.config.SCHEMA`), with the ensemble keys of non-EKF runs dropped:
+    older versions wrote their own defaults there for every method (ensemble = 0,
+    ensemble_q_scales = ensemble_r_scales = [1.0]), which the schema now accepts only with
+    method = "ekf"."""
+    from .config import ENSEMBLE_KEYS, SCHEMA
 
-    from .config import Config
-
-    default = Config()
-    sections: dict[str, set[str]] = {}
-    top_keys: set[str] = set()
-    for f in dataclasses.fields(Config):
-        value = getattr(default, f.name)
-        if dataclasses.is_dataclass(value):
-            sections[f.name] = {g.name for g in dataclasses.fields(value)}
-        else:
-            top_keys.add(f.name)
     out: dict[str, Any] = {}
     for key, value in stored.items():
-        if key in sections and isinstance(value, Mapping):
-            out[key] = {k: v for k, v in value.items() if k in sections[key]}
-        elif key in top_keys or (key in sections and not isinstance(value, Mapping)):
+        if key and key in SCHEMA and isinstance(value, Mapping):
+            out[key] = {k: v for k, v in value.items() if k in SCHEMA[key]}
+        elif key in SCHEMA[""] or key in SCHEMA:
             out[key] = value  # a malformed section is left for from_dict to report
     est = out.get("estimator")
     if isinstance(est, dict) and est.get("method", "ekf") != "ekf":
-        for key in _EKF_ONLY_KEYS:
+        for key in ENSEMBLE_KEYS:
             est.pop(key, None)
     return out

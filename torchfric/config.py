@@ -49,7 +49,7 @@ from typing import Any, ClassVar, NoReturn
 
 from .ekf import MEASUREMENTS
 from .ensemble import EnsembleSpec
-from .errors import TorchfricError
+from .errors import TorchfricError, shorten
 from .friction import FRICTIONS
 from .identify import EKFTuning
 from .output_error import OETuning
@@ -66,6 +66,7 @@ __all__ = [
     "INIT_KEYWORDS",
     "POSITION_UNITS",
     "RIG_PREFIX",
+    "SCHEMA",
     "VELOCITY_SOURCES",
     "apply_overrides",
     "to_toml",
@@ -118,23 +119,12 @@ def _a(noun: str) -> str:
     return ("an " if noun[:1] in "aeiou" else "a ") + noun
 
 
-SHOW_LIMIT = 200
-"""At most this many characters of a bad value are echoed in an error message."""
-
-
 def _show(value: Any) -> str:
     try:
         text = _toml_value(value)
     except (TorchfricError, RecursionError):
         text = repr(value)
     return shorten(text)
-
-
-def shorten(text: str, limit: int = SHOW_LIMIT) -> str:
-    """`text`, cut to `limit` characters with the number of characters left out."""
-    if len(text) <= limit:
-        return text
-    return f"{text[: limit - 40]}… ({len(text)} characters)"
 
 
 def _suggest(word: str, allowed: Sequence[str]) -> str:
@@ -856,6 +846,11 @@ class Config:
 _TOP_KEYS: tuple[str, ...] = tuple(
     f.name for f in dataclasses.fields(Config) if f.name not in _SECTIONS
 )
+SCHEMA: dict[str, tuple[str, ...]] = {
+    "": _TOP_KEYS,
+    **{name: tuple(f.name for f in dataclasses.fields(cls)) for name, cls in _SECTIONS.items()},
+}
+"""The keys a config may hold: top-level ones under "", each section's under its name."""
 
 
 def _fields(cls: type) -> dict[str, dataclasses.Field[Any]]:

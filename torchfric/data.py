@@ -33,9 +33,10 @@ import scipy.signal
 import torch
 from torch import Tensor
 
-from .errors import TorchfricError
+from .errors import TorchfricError, shorten
 from .resources import available_memory as _available_memory
 from .resources import format_bytes as _format_bytes
+from .resources import require_memory
 
 __all__ = [
     "Experiment",
@@ -59,17 +60,11 @@ _COLUMNS = ("t", "u", "q", "qdot")
 
 
 # --------------------------------------------------------------------------- conversion helpers
-_ECHO_LIMIT = 200  # at most this many characters of a library's message or a bad value
-
-
-def _clip(text: str, limit: int = _ECHO_LIMIT) -> str:
-    """`text` cut to `limit` characters (an ellipsis marks the cut)."""
-    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _one_line(exc: BaseException) -> str:
-    """The exception text on one line, at most `_ECHO_LIMIT` characters (for wrapping errors)."""
-    return _clip(" ".join(str(exc).split()) or type(exc).__name__)
+    """The exception text on one line, at most `SHOW_LIMIT` characters (for wrapping errors)."""
+    return shorten(" ".join(str(exc).split()) or type(exc).__name__)
 
 
 def _as_numpy(x: ArrayLike, what: str) -> np.ndarray:
@@ -416,12 +411,12 @@ def _read_csv(path: pathlib.Path) -> dict[str, np.ndarray]:
     if len(names) == 1 and (";" in names[0] or "\t" in names[0]):
         sep = "semicolon" if ";" in names[0] else "tab"
         raise TorchfricError(
-            f"{path}: the header {_clip(names[0])!r} is {sep}-separated; torchfric reads "
+            f"{path}: the header {shorten(names[0])!r} is {sep}-separated; torchfric reads "
             "comma-separated files, so replace the separators with commas (t,u,q)"
         )
     if len(set(names)) != len(names) or "" in names:
         raise TorchfricError(
-            f"{path}: header {_clip(str(names))} has empty or repeated column names"
+            f"{path}: header {shorten(str(names))} has empty or repeated column names"
         )
     try:
         with warnings.catch_warnings():
@@ -637,13 +632,12 @@ def _check_memory(p: pathlib.Path, size: int) -> None:
         array_bytes = _npz_array_bytes(p, size)
     else:  # .mat: arrays as large as the file (a compressed v7 file expands further)
         array_bytes = size
-    need = array_bytes * _LOAD_MEMORY_RATIO
-    if need > available:
-        raise TorchfricError(
-            f"data file {p} is {_format_bytes(size)}: loading it needs about "
-            f"{_format_bytes(need)} of memory and {_format_bytes(available)} is available; "
-            f"{_MEMORY_FIX}"
-        )
+    require_memory(
+        int(array_bytes * _LOAD_MEMORY_RATIO),
+        f"data file {p} is {_format_bytes(size)}: loading it",
+        _MEMORY_FIX,
+        available=available,
+    )
 
 
 def load_experiment(

@@ -22,9 +22,9 @@ import warnings
 from collections.abc import Mapping
 from typing import Any
 
-from .errors import TorchfricError
+from .errors import TorchfricError, shorten
 
-__all__ = ["KNOWN", "check_environment"]
+__all__ = ["KNOWN", "check_environment", "native_enabled"]
 
 KNOWN: tuple[str, ...] = (
     "TORCHFRIC_THREADS",
@@ -34,8 +34,16 @@ KNOWN: tuple[str, ...] = (
 )
 
 
-def _cut(text: str, limit: int = 200) -> str:
-    return text if len(text) <= limit else f"{text[: limit - 40]}… ({len(text)} characters)"
+def native_enabled(text: str | None) -> bool:
+    """``TORCHFRIC_NATIVE``: "1", empty or unset → True; "0" → False; else a one-line error."""
+    if text is None or text in ("", "1"):
+        return True
+    if text == "0":
+        return False
+    raise TorchfricError(
+        f"TORCHFRIC_NATIVE={shorten(text)!r} is not a valid value: use TORCHFRIC_NATIVE=1 "
+        "(generated C, the default) or TORCHFRIC_NATIVE=0 (the Inductor/eager path), or unset it"
+    )
 
 
 def _positive_int(name: str, text: str) -> int:
@@ -45,7 +53,7 @@ def _positive_int(name: str, text: str) -> int:
         value = 0
     if not 1 <= value <= 4096:
         raise TorchfricError(
-            f"{name}={_cut(text)!r} is not a thread count; give an integer from 1 to 4096, or "
+            f"{name}={shorten(text)!r} is not a thread count; give an integer from 1 to 4096, or "
             f"unset it"
         )
     return value
@@ -66,21 +74,16 @@ def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
         if name in ("TORCHFRIC_THREADS", "TORCHFRIC_NATIVE_THREADS"):
             out[name] = _positive_int(name, text)
         elif name == "TORCHFRIC_NATIVE":
-            if text.strip() not in ("0", "1", ""):
-                raise TorchfricError(
-                    f"TORCHFRIC_NATIVE={_cut(text)!r} is not allowed; use 1 (generated C, the "
-                    "default) or 0 (the torch paths only), or unset it"
-                )
-            out[name] = text.strip() != "0"
+            out[name] = native_enabled(text)
         elif name == "TORCHFRIC_CACHE":
             if not text.strip() or "\0" in text:
                 raise TorchfricError(
-                    f"TORCHFRIC_CACHE={_cut(text)!r} is not a folder path; give a folder you own, "
+                    f"TORCHFRIC_CACHE={shorten(text)!r} is not a folder path; give a folder you own, "
                     "or unset it for ~/.cache/torchfric"
                 )
             if os.path.exists(text) and not os.path.isdir(text):
                 raise TorchfricError(
-                    f"TORCHFRIC_CACHE={_cut(text)!r} is a file, not a folder; give a folder you "
+                    f"TORCHFRIC_CACHE={shorten(text)!r} is a file, not a folder; give a folder you "
                     "own, or unset it"
                 )
             out[name] = text
@@ -88,7 +91,7 @@ def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
             close = difflib.get_close_matches(name, KNOWN, n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
             warnings.warn(
-                f"{_cut(name)} is not a torchfric setting{hint}; known: {', '.join(KNOWN)}",
+                f"{shorten(name)} is not a torchfric setting{hint}; known: {', '.join(KNOWN)}",
                 stacklevel=2,
             )
     return out

@@ -2,6 +2,16 @@
 
 from __future__ import annotations
 
+SHOW_LIMIT = 200
+"""At most this many characters of a bad value (or a library's message) are echoed in an error."""
+
+
+def shorten(text: str, limit: int = SHOW_LIMIT) -> str:
+    """`text`, cut to `limit` characters with the number of characters it had."""
+    if len(text) <= limit:
+        return text
+    return f"{text[: limit - 40]}… ({len(text)} characters)"
+
 
 class TorchfricError(ValueError):
     """Bad input, bad configuration or a failed estimation, explained in one line.

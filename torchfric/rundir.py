@@ -59,7 +59,7 @@ LOCK = ".torchfric.lock"
 # What a run writes at the top of its directory; anything else is the user's.
 _OURS = re.compile(
     r"(\.torchfric-run|\.torchfric\.lock|config\.toml|metrics\.json|ensemble\.json|report\.html"
-    r"|last_good\.pt|[^/]+\.pt|passes|figures|events\.out\.tfevents\..*|\..*\.tmp)"
+    r"|[^/]+\.pt|passes|figures|events\.out\.tfevents\..*|\..*\.tmp)"
 )
 
 

@@ -117,9 +117,10 @@ def load_data(
     return groups[0], groups[1], groups[2], prints
 
 
-def check_resources(cfg: Config, train: list[Experiment]) -> None:
-    """Refuse, before anything runs, a model or ensemble too large for this machine's memory."""
-    n_theta = config_model(cfg, train).get_theta().numel()
+def check_resources(cfg: Config, train: list[Experiment], model: ArmModel) -> None:
+    """Refuse, before anything runs, a `model` (the configured one) or ensemble too large for
+    this machine's memory."""
+    n_theta = model.get_theta().numel()
     samples = sum(e.n for e in train)
     size = f"model.size = {cfg.model.size} ({n_theta} parameters)"
     if cfg.model.init == "prefit":
@@ -213,10 +214,14 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
     )
 
 
-def initial_model(cfg: Config, train: list[Experiment]) -> tuple[ArmModel, str]:
-    """Initial model per `model.init`: "prefit" (default), "config", or a checkpoint (warm start)."""
+def initial_model(
+    cfg: Config, train: list[Experiment], base: ArmModel | None = None
+) -> tuple[ArmModel, str]:
+    """Initial model per `model.init`: "prefit" (default), "config", or a checkpoint (warm start).
+
+    `base` is `config_model(cfg, train)` when the caller has it already."""
     init = cfg.model.init
-    base = config_model(cfg, train)
+    base = config_model(cfg, train) if base is None else base
     if init == "config":
         return base, "config"
     if init == "prefit":
@@ -771,8 +776,9 @@ def train(
     t_start = time.perf_counter()
     warnings: list[str] = []
     train_exps, val_exps, test_exps, fingerprints = load_data(cfg, warnings=warnings)
-    check_resources(cfg, train_exps)
-    model, init_kind = (None, "resume") if resume else initial_model(cfg, train_exps)
+    base = config_model(cfg, train_exps)
+    check_resources(cfg, train_exps, base)
+    model, init_kind = (None, "resume") if resume else initial_model(cfg, train_exps, base)
     claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)
     with locked(*([claim.replaces] if claim.replaces else []), claim.path):
         try:

@@ -88,7 +88,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import TorchfricError
+from ..environment import native_enabled
+from ..errors import shorten
 from .emit import _source
 from .scalar import NativeUnavailable
 
@@ -128,24 +129,10 @@ def compiler() -> str | None:
     return None
 
 
-def _shown(value: str) -> str:
-    """`value` quoted for a one-line message: at most 200 characters, control characters
-    escaped."""
-    return repr(value[:200]) + ("…" if len(value) > 200 else "")
-
-
 def _enabled() -> bool:
-    """``$TORCHFRIC_NATIVE``: "1", empty or unset → True; "0" → False; anything else is the
-    user's error, said in one line."""
-    value = os.environ.get("TORCHFRIC_NATIVE")
-    if value is None or value in ("", "1"):
-        return True
-    if value == "0":
-        return False
-    raise TorchfricError(
-        f"TORCHFRIC_NATIVE={_shown(value)} is not a valid value: use TORCHFRIC_NATIVE=1 "
-        "(generated C, the default) or TORCHFRIC_NATIVE=0 (the Inductor/eager path), or unset it"
-    )
+    """``$TORCHFRIC_NATIVE`` (`torchfric.environment.native_enabled`: a bad value is a
+    one-line `TorchfricError`)."""
+    return native_enabled(os.environ.get("TORCHFRIC_NATIVE"))
 
 
 _WARNED: set[tuple[str, str]] = set()
@@ -266,7 +253,7 @@ def _folder() -> Path:
         why = "it is not a folder" if os.path.lexists(folder) else exc.strerror or str(exc)
         _warn_once(
             "unusable", str(folder),
-            f"cache folder {_shown(str(folder))} cannot be used ({why}): set TORCHFRIC_CACHE "
+            f"cache folder {shorten(str(folder))!r} cannot be used ({why}): set TORCHFRIC_CACHE "
             "to a folder of your own; building in a private temporary folder for this process",
         )  # fmt: skip
         return _private_dir()
