@@ -313,6 +313,16 @@ def test_simulate_export_and_generate_never_overwrite_without_force(
     assert sorted(p.name for p in rig.iterdir()) == ["truth.json"]
 
 
+def test_a_closed_pipe_is_not_a_traceback() -> None:
+    """`torchfric evaluate ... | head`: the reader may leave before the table is written (here it
+    never reads: `true` exits at once, so the write always meets a closed pipe); no traceback."""
+    ckpt = pathlib.Path(__file__).parents[1] / "checkpoints" / "arm_tanh_ekf.pt"
+    cmd = f"{sys.executable} -m torchfric evaluate {ckpt} rig:validation | true"
+    out = subprocess.run(["bash", "-c", "set -o pipefail; " + cmd], capture_output=True, text=True)
+    assert "Traceback" not in out.stderr and "Error" not in out.stderr, out.stderr
+    assert out.returncode == 141
+
+
 def test_json_never_holds_nan() -> None:
     clean, reasons = json_safe({"a": {"fit_q": math.nan}, "b": [1.0, math.inf], "c": 2.0})
     assert clean == {"a": {"fit_q": None}, "b": [1.0, None], "c": 2.0}

@@ -10,6 +10,7 @@ import argparse
 import dataclasses
 import io
 import json
+import os
 import pathlib
 import shlex
 import sys
@@ -313,6 +314,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("\ninterrupted; nothing was left half-written\n")
         return 130
+    except BrokenPipeError:  # `torchfric evaluate ... | head`: the reader has what it wanted
+        # Point stdout at /dev/null so that Python's final flush does not raise again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
