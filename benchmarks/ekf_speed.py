@@ -7,13 +7,13 @@
 Sections:
 1. One filter through the real code path (`make_propagator` → `make_step` → `run_pass`, float64,
    paper tuning, the rig's identification data): steps/s eager, through the Inductor scan and
-   through the generated C (`torchfric.native`, the default), each with its one-time compile,
+   through the generated C (`torchfric.accel.native`, the default), each with its one-time compile,
    for tanh(3, 10, 30) and polytopic(3, 5, 9).
 2. Baselines in the same run: an EKF in numpy with a hand-derived Jacobian implementing the same
    equations (RK4 3/8 map with its variational Φ, trapezoid Q_d, Joseph update) for tanh(3),
    checked against torchfric's step to 1e-9 before it is timed; and filterpy's EKF where installed
    (it is not a dependency; the row says so when absent).
-3. Batched ensembles (`torchfric.ensemble.make_masked_step`, compiled chunks, as
+3. Batched ensembles (`torchfric.estimators.ensemble.make_masked_step`, compiled chunks, as
    `identify_ekf_ensemble` runs them): filter-steps/s against K, generated C (four members per
    SIMD vector, members split across the cores) and the Inductor scan of the vmapped step.
 4. Pass time against the number of samples (default path, tanh(3), 1 k – 1 M) and the peak
@@ -44,17 +44,17 @@ import numpy as np
 import torch
 
 from torchfric import ArmModel, make_experiment, make_friction
-from torchfric.ekf import (
+from torchfric.estimators.ekf import (
     EKFState,
     make_propagator,
     make_step,
     measurement_matrix,
     run_pass,
 )
-from torchfric.ensemble import make_masked_step, random_thetas
-from torchfric.identify import EKFTuning, identify_ekf
-from torchfric.prefit import prefit
-from torchfric.rig import rig_experiment
+from torchfric.estimators.ensemble import make_masked_step, random_thetas
+from torchfric.estimators.identify import EKFTuning, identify_ekf
+from torchfric.estimators.prefit import prefit
+from torchfric.data.rig import rig_experiment
 
 F64 = torch.float64
 

@@ -34,10 +34,10 @@ _CHILD = r"""
 import json, resource, sys, time
 import torch
 torch.set_num_threads(1)
-from torchfric.config import Config
-from torchfric.output_error import _prepare, _scales, _full_loss
-from torchfric.prefit import prefit
-from torchfric.runner import config_model, load_data
+from torchfric.runs.config import Config
+from torchfric.estimators.output_error import _prepare, _scales, _full_loss
+from torchfric.estimators.prefit import prefit
+from torchfric.runs.runner import config_model, load_data
 
 n, method = int(sys.argv[1]), sys.argv[2]
 adjoint, engine = method == "adjoint", "compiled" if method == "compiled" else "odeint"

@@ -6,7 +6,7 @@
 Starts: `--starts` initial guesses of the tanh(3) arm model drawn over the issue-9 box around the
 configs' constant guesses (`experiments/configs/arm_tanh_ekf.toml` with ``model.init = "config"``:
 M 0.03, b 0.01, default friction parameters), every parameter scaled by a log-uniform factor in
-[1/3, 3] (`torchfric.ensemble.random_thetas`; start 0 is the guess itself). From each start:
+[1/3, 3] (`torchfric.estimators.ensemble.random_thetas`; start 0 is the guess itself). From each start:
 
 - **OE alone**: output error on the rig's identification data (30 s at 1 kHz) at full length, by
   L-BFGS (`--lbfgs` iterations, strong-Wolfe line search) on the normalised q and q̇ simulation
@@ -36,13 +36,13 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric import EKFTuning, identify_ekf, identify_output_error
-from torchfric.config import Config
-from torchfric.ensemble import random_thetas
+from torchfric.runs.config import Config
+from torchfric.estimators.ensemble import random_thetas
 from torchfric.errors import TorchfricError
-from torchfric.metrics import friction_curve_error, score_simulation
-from torchfric.output_error import OETuning
-from torchfric.rig import RigParameters
-from torchfric.runner import initial_model, load_data
+from torchfric.estimators.metrics import friction_curve_error, score_simulation
+from torchfric.estimators.output_error import OETuning
+from torchfric.data.rig import RigParameters
+from torchfric.runs.runner import initial_model, load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

@@ -11,7 +11,7 @@ the published numbers quoted here). Scoring, per data set:
 
 - EMPS: the benchmark protocol (Champneys et al. 2024 / nonlinear_benchmarks): open-loop
   simulation of the test file ``DATA_EMPS_PULSES.mat`` from ``u = vir``; the first 20 samples
-  of ``qm`` set the initial state (`torchfric.metrics.score_benchmark`); the score is
+  of ``qm`` set the initial state (`torchfric.estimators.metrics.score_benchmark`); the score is
   ``1000·RMSE(qm[20:], ŷ[20:])`` in mm. The same protocol on the identification file is shown
   for reference, and the published physical model (IDIM-LS) is scored the same way.
 - HSM150: open-loop simulation of each repeat-3 test file from rest; RMSE of the angle [rad] and
@@ -37,10 +37,10 @@ from typing import Any
 import torch
 
 from torchfric import ArmModel, load_checkpoint, load_experiment
-from torchfric.checkpoint import read_checkpoint
-from torchfric.config import Config
-from torchfric.friction import CoulombFriction
-from torchfric.metrics import rms, score_benchmark, score_simulation
+from torchfric.runs.checkpoint import read_checkpoint
+from torchfric.runs.config import Config
+from torchfric.models.friction import CoulombFriction
+from torchfric.estimators.metrics import rms, score_benchmark, score_simulation
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -222,7 +222,7 @@ def train_all(sets: list[str], *, update: bool = False) -> dict[str, pathlib.Pat
     With `update`, each final checkpoint is also copied over the committed
     ``checkpoints/NAME.pt`` (the explicit ``--checkpoint`` step).
     """
-    from torchfric.runner import train
+    from torchfric.runs.runner import train
 
     out = {}
     for key in sets:

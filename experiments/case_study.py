@@ -16,7 +16,7 @@ Without --with-oe the output-error rows of the table come from the committed che
 so. Then, from the checkpoints: the figures (``experiments/figures/*.png``), the results table
 (printed, and written to ``experiments/results.md``) and the README section
 (``experiments/CASE_STUDY.md``). Every number in them is computed here or read from the
-checkpoints' metrics (recorded by the training runs with ``torchfric.metrics.score_simulation``).
+checkpoints' metrics (recorded by the training runs with ``torchfric.estimators.metrics.score_simulation``).
 """
 
 from __future__ import annotations
@@ -37,12 +37,12 @@ import torch
 from torch import Tensor
 
 from torchfric import ArmModel, Experiment, load_checkpoint, make_experiment, read_checkpoint
-from torchfric.data import zero_phase_acceleration, zero_phase_derivative
-from torchfric.export import ExportedArm
-from torchfric.metrics import fit_percent, friction_curve_error, rms
-from torchfric.rig import RigParameters, rig_experiment
-from torchfric.simulate import auto_substeps
-from torchfric.uncertainty import friction_band
+from torchfric.data.experiment import zero_phase_acceleration, zero_phase_derivative
+from torchfric.runs.export import ExportedArm
+from torchfric.estimators.metrics import fit_percent, friction_curve_error, rms
+from torchfric.data.rig import RigParameters, rig_experiment
+from torchfric.models.simulate import auto_substeps
+from torchfric.estimators.uncertainty import friction_band
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "experiments" / "configs"
@@ -174,7 +174,7 @@ def simulate_many(model: ArmModel, exps: list[Experiment]) -> list[Tensor]:
     """Open-loop simulations `(N, 2)` of equal-length experiments from their measured x0.
 
     TorchScript (the exported model's integrator): the same numbers as
-    `torchfric.metrics.score_simulation` to rounding, several times faster on this CPU.
+    `torchfric.estimators.metrics.score_simulation` to rounding, several times faster on this CPU.
     """
     assert len({e.n for e in exps}) == 1 and all(torch.equal(e.t, exps[0].t) for e in exps)
     with warnings.catch_warnings():
@@ -821,7 +821,7 @@ reconstructed by the paper's 200 Hz high-pass differentiator.
 
 **Identified friction** (paper Fig. 3): both EKF models against the rig's true steady-state
 curve, with a ±2σ band from the filter's final parameter covariance P_θθ by the delta method
-(`torchfric.uncertainty.friction_band`: Jacobian of the friction curve with respect to θ as
+(`torchfric.estimators.uncertainty.friction_band`: Jacobian of the friction curve with respect to θ as
 stored, log-space entries included). Grey: velocities the identification data did not reach.
 The band is the filter's own belief — after repeated passes over the same data it is narrow,
 and it knows nothing of the model-structure error (a static curve for a dynamic LuGre system),

@@ -1,4 +1,4 @@
-"""Tests of torchfric.arm.ArmModel: the paper's parameter vectors, θ bookkeeping (log storage,
+"""Tests of torchfric.models.arm.ArmModel: the paper's parameter vectors, θ bookkeeping (log storage,
 physical values, round trips), the vector field against its closed form, spec round trips, bad
 input by message, and autograd Jacobians of f against analytic Jacobians derived by hand for the
 tanh and the polytopic model."""
@@ -12,9 +12,9 @@ import pytest
 import torch
 from torch.func import jacrev
 
-from torchfric.arm import ArmModel
 from torchfric.errors import TorchfricError
-from torchfric.friction import (
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import (
     CoulombFriction,
     OddTanhFriction,
     PolytopicFriction,

@@ -1,7 +1,7 @@
 """Every checkpoint is complete and loadable: older formats and older stored configs are
-migrated (`torchfric.checkpoint.checkpoint_config`, `_FORMAT_MIGRATIONS`) or refused with one
+migrated (`torchfric.runs.checkpoint.checkpoint_config`, `_FORMAT_MIGRATIONS`) or refused with one
 line, and every shipped checkpoint in ``checkpoints/`` loads, builds its config, simulates,
-scores and exports (the export simulating as `torchfric.simulate` does)."""
+scores and exports (the export simulating as `torchfric.models.simulate` does)."""
 
 from __future__ import annotations
 
@@ -13,9 +13,14 @@ import warnings
 import pytest
 import torch
 
-from torchfric import checkpoint as ck
-from torchfric.arm import ArmModel
-from torchfric.checkpoint import (
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.errors import TorchfricError
+from torchfric.estimators.metrics import score_simulation
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction
+from torchfric.models.simulate import simulate
+from torchfric.runs import checkpoint as ck
+from torchfric.runs.checkpoint import (
     FORMAT_VERSION,
     build_checkpoint,
     checkpoint_config,
@@ -23,13 +28,8 @@ from torchfric.checkpoint import (
     read_checkpoint,
     save_checkpoint,
 )
-from torchfric.config import Config
-from torchfric.data import Experiment, make_experiment
-from torchfric.errors import TorchfricError
-from torchfric.export import export_model, save_exported
-from torchfric.friction import OddTanhFriction
-from torchfric.metrics import score_simulation
-from torchfric.simulate import simulate
+from torchfric.runs.config import Config
+from torchfric.runs.export import export_model, save_exported
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "checkpoints").glob("*.pt"))
@@ -177,7 +177,7 @@ def _real_path(stored: str) -> pathlib.Path | None:
 def _experiment(cfg: Config, raw: dict, model: ArmModel) -> Experiment:
     """The first SAMPLES samples of the checkpoint's own validation (else training) data; for a
     real-data file that is not here, a synthetic input at the data's sample time."""
-    from torchfric.runner import load_data
+    from torchfric.runs.runner import load_data
 
     paths = list(cfg.data.validation) + list(cfg.data.train)
     for p in paths:

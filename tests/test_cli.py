@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchfric.checkpoint import read_checkpoint
-from torchfric.cli import main
+from torchfric.runs.checkpoint import read_checkpoint
+from torchfric.runs.cli import main
 
 SHORT = [
     "--set", "data.stop=1500",
@@ -267,10 +267,10 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     import signal
     import time
 
-    from torchfric.arm import ArmModel
-    from torchfric.config import Config
-    from torchfric.identify import PassRecord, identify_ekf
-    from torchfric.runner import load_data
+    from torchfric.estimators.identify import PassRecord, identify_ekf
+    from torchfric.models.arm import ArmModel
+    from torchfric.runs.config import Config
+    from torchfric.runs.runner import load_data
 
     cfg = _config(tmp_path, name="short")  # same settings as the fixture's run
     run = tmp_path / "runs" / "short"

@@ -8,7 +8,10 @@ import pathlib
 
 import pytest
 
-from torchfric.config import (
+from torchfric.errors import TorchfricError
+from torchfric.estimators.identify import EKFTuning
+from torchfric.models.friction import FRICTIONS
+from torchfric.runs.config import (
     Config,
     DataConfig,
     EstimatorConfig,
@@ -16,9 +19,6 @@ from torchfric.config import (
     SimulationConfig,
     to_toml,
 )
-from torchfric.errors import TorchfricError
-from torchfric.friction import FRICTIONS
-from torchfric.identify import EKFTuning
 
 
 def write(folder: pathlib.Path, text: str, name: str = "run.toml") -> pathlib.Path:

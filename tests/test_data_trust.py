@@ -1,4 +1,4 @@
-"""Tests of torchfric.data's guards against files it cannot load (directories, pipes, devices,
+"""Tests of torchfric.data.experiment's guards against files it cannot load (directories, pipes, devices,
 files too large for memory, binary, empty or non-UTF-8 files) and of `data_warnings`, which flags
 records that would almost certainly give a wrong model (clipped input, t in ms)."""
 
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import scipy.io
 
-import torchfric.data as data_module
-from torchfric.data import Experiment, data_warnings, load_experiment, make_experiment
+import torchfric.data.experiment as data_module
+from torchfric.data.experiment import Experiment, data_warnings, load_experiment, make_experiment
+from torchfric.data.rig import EXPERIMENTS, rig_experiment
 from torchfric.errors import TorchfricError
-from torchfric.rig import EXPERIMENTS, rig_experiment
 
 GIB = 1 << 30
 HSM150_COLUMNS = {"t": "data:0", "u": "data:4", "q": "data:2", "qdot": "data:3"}

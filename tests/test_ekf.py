@@ -1,4 +1,4 @@
-"""Correctness of the augmented-state continuous–discrete EKF (torchfric.ekf, torchfric.identify).
+"""Correctness of the augmented-state continuous–discrete EKF (torchfric.estimators.ekf, torchfric.estimators.identify).
 
 - A linear system (black box switched off by zero variance) against an independent linear
   continuous–discrete Kalman filter in numpy (matrix exponentials, Van Loan), step by step, for
@@ -28,9 +28,9 @@ import scipy.stats
 import torch
 from torch.func import jacrev
 
-from torchfric.arm import ArmModel
-from torchfric.data import Experiment, make_experiment
-from torchfric.ekf import (
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.errors import DivergenceError, TorchfricError
+from torchfric.estimators.ekf import (
     EKFState,
     FilterFailure,
     make_chunk,
@@ -44,15 +44,21 @@ from torchfric.ekf import (
     step,
     update,
 )
-from torchfric.errors import DivergenceError, TorchfricError
-from torchfric.friction import (
+from torchfric.estimators.identify import (
+    EKFCallback,
+    EKFResult,
+    EKFTuning,
+    PassRecord,
+    identify_ekf,
+)
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import (
     CoulombFriction,
     OddTanhFriction,
     PolytopicFriction,
     StribeckFriction,
 )
-from torchfric.identify import EKFCallback, EKFResult, EKFTuning, PassRecord, identify_ekf
-from torchfric.simulate import simulate
+from torchfric.models.simulate import simulate
 
 DT = 1e-3
 

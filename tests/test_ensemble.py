@@ -1,4 +1,4 @@
-"""Batched EKF ensembles (`torchfric.ensemble`) against the single filter, member by member.
+"""Batched EKF ensembles (`torchfric.estimators.ensemble`) against the single filter, member by member.
 
 Truth here is the single-filter implementation: every member of a batch must reproduce
 `identify_ekf` run alone on that member's start and tuning (same passes, rollback, early stop),
@@ -12,10 +12,11 @@ import math
 import pytest
 import torch
 
-from torchfric.arm import ArmModel
-from torchfric.data import Experiment, make_experiment
-from torchfric.ekf import make_propagator, make_step, measurement_matrix
-from torchfric.ensemble import (
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.data.rig import RigParameters, excitation
+from torchfric.errors import TorchfricError
+from torchfric.estimators.ekf import make_propagator, make_step, measurement_matrix
+from torchfric.estimators.ensemble import (
     DIVERGED,
     EnsembleSpec,
     identify_ekf_ensemble,
@@ -24,12 +25,11 @@ from torchfric.ensemble import (
     random_thetas,
     simulate_members,
 )
-from torchfric.errors import TorchfricError
-from torchfric.friction import OddTanhFriction, PolytopicFriction
-from torchfric.identify import EKFTuning, identify_ekf
-from torchfric.metrics import score_simulation
-from torchfric.rig import RigParameters, excitation
-from torchfric.simulate import auto_substeps, simulate
+from torchfric.estimators.identify import EKFTuning, identify_ekf
+from torchfric.estimators.metrics import score_simulation
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction, PolytopicFriction
+from torchfric.models.simulate import auto_substeps, simulate
 
 
 def _true() -> ArmModel:
@@ -290,8 +290,8 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     import shutil
     import textwrap
 
-    from torchfric.checkpoint import read_checkpoint
-    from torchfric.cli import main
+    from torchfric.runs.checkpoint import read_checkpoint
+    from torchfric.runs.cli import main
 
     cfg = tmp_path / "ens.toml"
     cfg.write_text(
@@ -357,7 +357,7 @@ def test_the_default_config_runs_one_start_under_nine_tunings() -> None:
     """Without ensemble keys, `torchfric train` runs the initial θ under Q and R ×/÷ 10 (issue 9:
     no trial-and-error tuning); `ensemble = 0` is the single filter; output error ignores the
     default but refuses a changed ensemble key."""
-    from torchfric.config import Config
+    from torchfric.runs.config import Config
 
     est = Config.loads("").estimator
     spec = est.ensemble_spec()

@@ -1,7 +1,7 @@
-"""TorchScript export (`torchfric.export`): every model option simulates as `torchfric.simulate`
+"""TorchScript export (`torchfric.runs.export`): every model option simulates as `torchfric.models.simulate`
 does, after a save + ``torch.jit.load`` round trip, at the training sample time and at others.
 
-The export shares the physics with `ArmModel` (`torchfric.arm.arm_field` / `arm_friction`, the
+The export shares the physics with `ArmModel` (`torchfric.models.arm.arm_field` / `arm_friction`, the
 friction's own `evaluate` traced), so these comparisons are to rounding; the tolerance asked of
 them is a relative 1e-6 of each channel's range.
 """
@@ -18,11 +18,11 @@ import warnings
 import pytest
 import torch
 
-from torchfric.arm import ArmModel
 from torchfric.errors import TorchfricError
-from torchfric.export import export_model, save_exported
-from torchfric.friction import FRICTIONS, make_friction
-from torchfric.simulate import SOLVERS, auto_substeps, simulate
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import FRICTIONS, make_friction
+from torchfric.models.simulate import SOLVERS, auto_substeps, simulate
+from torchfric.runs.export import export_model, save_exported
 
 RTOL = 1e-6
 
@@ -155,7 +155,7 @@ def stiff_arm() -> ArmModel:
 @pytest.mark.parametrize("dt", [2e-4, 1e-3, 4e-3, 1.7e-2, 5e-2])
 def test_export_simulates_at_any_sample_time(dt: float, tmp_path: pathlib.Path) -> None:
     """Exported for 1 ms data, called at another sample time: the sub-steps follow the dt passed
-    in (`auto_substeps`' rule), so the result is torchfric.simulate's at that dt."""
+    in (`auto_substeps`' rule), so the result is torchfric.models.simulate's at that dt."""
     model = stiff_arm()
     module = round_trip(export_model(model, dt=1e-3), tmp_path)
     assert module.nominal_dt == 1e-3

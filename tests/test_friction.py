@@ -1,4 +1,4 @@
-"""Tests of torchfric.friction: oddness and zero-at-zero for every parameter value (hypothesis),
+"""Tests of torchfric.models.friction: oddness and zero-at-zero for every parameter value (hypothesis),
 agreement with literal numpy re-implementations of the paper's formulas (Hensen et al. §3.1,
 §3.2) and the white-box closed forms, parameter bookkeeping (counts, names, log storage),
 gradcheck, shapes, and every bad-input message."""
@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from torchfric.errors import TorchfricError
-from torchfric.friction import (
+from torchfric.models.friction import (
     FRICTIONS,
     CoulombFriction,
     Friction,

@@ -1,7 +1,7 @@
 """Parameter recovery by the iterative EKF (`identify_ekf`) on seeded synthetic data.
 
 The data come from the project's own model class: an `ArmModel` with known θ (tanh(3) with
-viscous friction, and polytopic(3)) simulated by `torchfric.simulate` under the first 3 s of the
+viscous friction, and polytopic(3)) simulated by `torchfric.models.simulate` under the first 3 s of the
 rig's identification excitation (seed 2: one move segment up to ≈ 10 rad/s with a slow reversal,
 so 0.2–1 rad/s, 1–3 rad/s and > 3 rad/s each hold ≈ 800 samples), positions quantised to the
 rig's encoder (2e-4 rad), velocity reconstructed by the paper's high-pass differentiator. The
@@ -32,12 +32,12 @@ import math
 import pytest
 import torch
 
-from torchfric.arm import ArmModel
-from torchfric.data import Experiment, make_experiment
-from torchfric.friction import OddTanhFriction, PolytopicFriction
-from torchfric.identify import EKFTuning, identify_ekf
-from torchfric.rig import RigParameters, excitation
-from torchfric.simulate import simulate
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.data.rig import RigParameters, excitation
+from torchfric.estimators.identify import EKFTuning, identify_ekf
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction, PolytopicFriction
+from torchfric.models.simulate import simulate
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,4 @@
-"""The generated-C path (`torchfric.native`) against the eager torch code it is traced from.
+"""The generated-C path (`torchfric.accel.native`) against the eager torch code it is traced from.
 
 Truth is the eager function: every operation in the translation table, every friction model and
 white-box term through the filter step, the ensemble's masked step member by member, and the
@@ -13,18 +13,18 @@ import math
 import pytest
 import torch
 
-from torchfric import native
-from torchfric.arm import ArmModel
-from torchfric.ekf import CHUNK, make_chunk, make_propagator, make_step
-from torchfric.ensemble import make_masked_step
-from torchfric.friction import (
+from torchfric.accel import native
+from torchfric.accel.native import NativeUnavailable, make_native_chunk
+from torchfric.estimators.ekf import CHUNK, make_chunk, make_propagator, make_step
+from torchfric.estimators.ensemble import make_masked_step
+from torchfric.estimators.identify import EKFTuning
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import (
     CoulombFriction,
     OddTanhFriction,
     PolytopicFriction,
     StribeckFriction,
 )
-from torchfric.identify import EKFTuning
-from torchfric.native import NativeUnavailable, make_native_chunk
 
 pytestmark = pytest.mark.skipif(native.compiler() is None, reason="no C compiler here")
 

@@ -1,4 +1,4 @@
-"""The compiled-code cache of `torchfric.native`: it only loads code nobody else could have
+"""The compiled-code cache of `torchfric.accel.native`: it only loads code nobody else could have
 written, verifies every library against its recorded SHA-256 before loading it, repairs a bad
 entry instead of crashing, and says when a run loses the native path.
 
@@ -24,10 +24,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchfric import native
-from torchfric.ekf import make_chunk
+from torchfric.accel import native
+from torchfric.accel.native import NativeCacheWarning, NativeUnavailable, make_native_chunk
 from torchfric.errors import TorchfricError
-from torchfric.native import NativeCacheWarning, NativeUnavailable, make_native_chunk
+from torchfric.estimators.ekf import make_chunk
 
 pytestmark = pytest.mark.skipif(native.compiler() is None, reason="no C compiler here")
 
@@ -300,7 +300,7 @@ def test_a_garbage_library_is_removed_and_rebuilt(record, built, cache) -> None:
 _CHILD = """
 import torch
 torch.set_default_dtype(torch.float64)
-from torchfric.native import make_native_chunk
+from torchfric.accel.native import make_native_chunk
 
 def fn(x, c):
     return (torch.tanh(x) + c,), ()

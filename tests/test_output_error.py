@@ -14,11 +14,10 @@ import pytest
 import torch
 from torch import Tensor
 
-from torchfric.arm import ArmModel
-from torchfric.data import Experiment, make_experiment
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.data.rig import RigParameters, excitation
 from torchfric.errors import TorchfricError
-from torchfric.friction import OddTanhFriction
-from torchfric.output_error import (
+from torchfric.estimators.output_error import (
     EpochRecord,
     OECallback,
     OETuning,
@@ -31,8 +30,9 @@ from torchfric.output_error import (
     _tiles,
     identify_output_error,
 )
-from torchfric.rig import RigParameters, excitation
-from torchfric.simulate import simulate
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction
+from torchfric.models.simulate import simulate
 
 V_MIN = 0.2  # rad/s: one encoder count per sample; below it q̇ is quantisation noise
 

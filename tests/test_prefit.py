@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchfric import ArmModel, TorchfricError, make_experiment, make_friction, prefit
-from torchfric.rig import RigParameters, rig_experiment
+from torchfric.data.rig import RigParameters, rig_experiment
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def _lm_one_start(model, theta0, q, v, a, u, iterations, v_stick, rows):  # type
 
     from torch.func import grad, jacfwd, vmap
 
-    from torchfric.prefit import _slope_bounds
+    from torchfric.estimators.prefit import _slope_bounds
 
     lo, hi = _slope_bounds(model, v_stick)
     x = torch.stack([q, v], dim=-1)
@@ -125,12 +125,17 @@ def test_batched_levenberg_marquardt_equals_one_start_at_a_time(
     the torch rows (no C compiler), against an independent one-start LM."""
     import importlib
 
-    from torchfric import native
-    from torchfric.prefit import _levenberg_marquardt, _linear_skeleton, _regression_data, _starts
+    from torchfric.accel import native
+    from torchfric.estimators.prefit import (
+        _levenberg_marquardt,
+        _linear_skeleton,
+        _regression_data,
+        _starts,
+    )
 
     monkeypatch.setattr(native, "compiler", lambda: None)
     # and no generated rows kept from earlier pre-fits of the same structure
-    monkeypatch.setattr(importlib.import_module("torchfric.prefit"), "_ROW_CHUNKS", {})
+    monkeypatch.setattr(importlib.import_module("torchfric.estimators.prefit"), "_ROW_CHUNKS", {})
     arm = ArmModel(make_friction(kind, 3), c_m=16.0)
     q, v, a, u = _regression_data([identification], 50.0, 0.02)
     v_stick = 0.02 * float(v.abs().max())
@@ -158,8 +163,8 @@ def test_generated_rows_equal_torch_rows_and_keep_the_starts_apart(
     batched LM on them still gives each start what it gives alone."""
     from torch.func import grad, vmap
 
-    from torchfric import native
-    from torchfric.prefit import (
+    from torchfric.accel import native
+    from torchfric.estimators.prefit import (
         _levenberg_marquardt,
         _linear_skeleton,
         _native_rows,

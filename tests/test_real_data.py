@@ -17,13 +17,13 @@ import scipy.io
 import torch
 
 from torchfric import ArmModel, OddTanhFriction, load_experiment
-from torchfric.config import Config
-from torchfric.data import Experiment
+from torchfric.data.experiment import Experiment
 from torchfric.errors import TorchfricError
-from torchfric.friction import CoulombFriction
-from torchfric.metrics import rms, score_benchmark, window_initial_state
-from torchfric.runner import load_data
-from torchfric.simulate import simulate
+from torchfric.estimators.metrics import rms, score_benchmark, window_initial_state
+from torchfric.models.friction import CoulombFriction
+from torchfric.models.simulate import simulate
+from torchfric.runs.config import Config
+from torchfric.runs.runner import load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "experiments" / "configs"
@@ -193,7 +193,7 @@ def test_config_input_delay_is_checked_and_applied(shared_data: pathlib.Path) ->
 
 
 def test_prefit_cutoff_follows_the_sampling_rate() -> None:
-    from torchfric.prefit import default_cutoff_hz, prefit
+    from torchfric.estimators.prefit import default_cutoff_hz, prefit
 
     assert default_cutoff_hz(1e-3) == 50.0  # EMPS, HSM150 (1 kHz): unchanged
     assert default_cutoff_hz(0.025) == pytest.approx(8.0)  # disc (40 Hz): 0.4 × Nyquist
@@ -257,8 +257,8 @@ def test_asymmetric_term_is_the_even_viscous_part_only() -> None:
 
 
 def test_asymmetric_config_and_prefit_skeleton() -> None:
-    from torchfric.prefit import _linear_skeleton
-    from torchfric.runner import config_model
+    from torchfric.estimators.prefit import _linear_skeleton
+    from torchfric.runs.runner import config_model
 
     cfg = Config.loads('[model]\nfriction = "tanh"\noffset = 0.0\nasymmetric = 0.0\nc_m = 1.0\n')
     assert cfg.model.asymmetric == 0.0

@@ -1,4 +1,4 @@
-"""The synthetic rig (torchfric.rig): integrator accuracy, LuGre physics, experiments, files."""
+"""The synthetic rig (torchfric.data.rig): integrator accuracy, LuGre physics, experiments, files."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy.optimize import brentq
 
-from torchfric import rig
+from torchfric.data import rig
 from torchfric.errors import TorchfricError
 
 NOMINAL = rig.RigParameters()

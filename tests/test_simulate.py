@@ -1,4 +1,4 @@
-"""Tests of torchfric.simulate against closed forms (viscous spin-down, constant torque, the
+"""Tests of torchfric.models.simulate against closed forms (viscous spin-down, constant torque, the
 smooth-Coulomb stop, a frictionless pendulum's energy), the integrators' convergence orders, the
 exact zero-order hold, batching, automatic sub-steps, gradients through friction → ODE → loss,
 and every bad-input message.
@@ -14,11 +14,18 @@ import pytest
 import scipy.integrate
 import torch
 
-from torchfric import native
-from torchfric.arm import ArmModel
+from torchfric.accel import native
 from torchfric.errors import TorchfricError
-from torchfric.friction import CoulombFriction, OddTanhFriction, PolytopicFriction
-from torchfric.simulate import ENGINES, SOLVERS, _rk4_chunk, auto_substeps, sample_grid, simulate
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import CoulombFriction, OddTanhFriction, PolytopicFriction
+from torchfric.models.simulate import (
+    ENGINES,
+    SOLVERS,
+    _rk4_chunk,
+    auto_substeps,
+    sample_grid,
+    simulate,
+)
 
 
 def _no_black_box(**kwargs) -> ArmModel:

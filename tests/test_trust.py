@@ -16,10 +16,11 @@ import textwrap
 import numpy as np
 import pytest
 
-from torchfric.cli import main
-from torchfric.config import Config
 from torchfric.errors import TorchfricError
-from torchfric.rundir import LOCK, MARKER, json_safe, write_json
+from torchfric.files import json_safe, write_json
+from torchfric.runs.cli import main
+from torchfric.runs.config import Config
+from torchfric.runs.rundir import LOCK, MARKER
 
 SHORT = ["--set", "data.stop=1500", "--set", "estimator.passes=1", "--set", "estimator.tolerance=0"]
 
@@ -48,7 +49,7 @@ def _user_csv(
     path: pathlib.Path, n: int = 3000, *, clip: float | None = None, t_scale=1.0, qdot=False
 ) -> pathlib.Path:
     """The rig's identification record as a user's own CSV (t, u, q, and the true qdot)."""
-    from torchfric.rig import rig_experiment
+    from torchfric.data.rig import rig_experiment
 
     a = rig_experiment("identification", seed=0)
     u = a["u"][:n].copy()
@@ -147,9 +148,9 @@ def test_saturated_input_and_millisecond_time_are_warned(
 
 
 def test_result_warnings_name_what_is_almost_certainly_wrong() -> None:
-    from torchfric.arm import ArmModel
-    from torchfric.friction import OddTanhFriction
-    from torchfric.runner import result_warnings
+    from torchfric.models.arm import ArmModel
+    from torchfric.models.friction import OddTanhFriction
+    from torchfric.runs.runner import result_warnings
 
     cfg = Config()
     model = ArmModel(OddTanhFriction(3), inertia=0.03, viscous=0.01, c_m=16.0)
@@ -193,7 +194,7 @@ def test_out_with_an_earlier_run_needs_overwrite_and_replaces_it_only_at_the_end
     assert "--overwrite" in _one_line_error(capsys)
 
     # A re-run that fails half-way leaves the earlier run exactly as it was.
-    import torchfric.runner as runner
+    import torchfric.runs.runner as runner
     from torchfric.errors import DivergenceError
 
     def diverge(*args, **kwargs):  # type: ignore[no-untyped-def]
@@ -221,7 +222,7 @@ def test_checkpoints_are_copied_only_by_the_explicit_step(
     assert (tmp_path / "runs" / "short" / "short.pt").is_file()
     target = tmp_path / "checkpoints" / "short.pt"
     assert main(["train", str(cfg), "--quiet", *SHORT, "--checkpoint", str(target)]) == 0
-    from torchfric.checkpoint import read_checkpoint
+    from torchfric.runs.checkpoint import read_checkpoint
 
     assert read_checkpoint(target)["complete"]
     notes = tmp_path / "notes.pt"
@@ -256,7 +257,7 @@ def test_a_second_run_into_a_locked_directory_stops_naming_the_owner(
 def test_ctrl_c_names_the_last_pass_and_the_resume_command(
     tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import torchfric.runner as runner
+    import torchfric.runs.runner as runner
 
     original = runner._RunLogger.on_pass_end
 

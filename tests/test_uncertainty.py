@@ -1,4 +1,4 @@
-"""Delta-method band of the friction curve (torchfric.uncertainty) against exact references."""
+"""Delta-method band of the friction curve (torchfric.estimators.uncertainty) against exact references."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchfric import ArmModel, OddTanhFriction, PolytopicFriction, TorchfricError
-from torchfric.uncertainty import friction_band, friction_jacobian, friction_samples
+from torchfric.estimators.uncertainty import friction_band, friction_jacobian, friction_samples
 
 
 def tanh_arm() -> ArmModel:

@@ -8,17 +8,24 @@ Public API (the CLI is a thin layer over it)::
     arm = torchfric.load_checkpoint("checkpoints/arm_tanh_ekf.pt")
 """
 
-from importlib.metadata import PackageNotFoundError, version
 
-from .arm import ArmModel
-from .checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from .config import Config
-from .data import Experiment, load_experiment, make_experiment, reconstruct_velocity, save_csv
-from .ekf import EKFState, Innovation, predict, update
-from .ensemble import EnsembleResult, EnsembleSpec, identify_ekf_ensemble
+from .data import (
+    Experiment,
+    load_experiment,
+    make_experiment,
+    reconstruct_velocity,
+    save_csv,
+)
 from .errors import DivergenceError, TorchfricError
-from .export import export_model
-from .friction import (
+from .estimators.ekf import EKFState, Innovation, predict, update
+from .estimators.ensemble import EnsembleResult, EnsembleSpec, identify_ekf_ensemble
+from .estimators.identify import EKFCallback, EKFResult, EKFTuning, PassRecord, identify_ekf
+from .estimators.metrics import fit_percent, score_simulation
+from .estimators.output_error import OECallback, OEResult, OETuning, identify_output_error
+from .estimators.prefit import PrefitResult, prefit
+from .estimators.uncertainty import friction_band
+from .models.arm import ArmModel
+from .models.friction import (
     FRICTIONS,
     CoulombFriction,
     Friction,
@@ -27,17 +34,11 @@ from .friction import (
     StribeckFriction,
     make_friction,
 )
-from .identify import EKFCallback, EKFResult, EKFTuning, PassRecord, identify_ekf
-from .metrics import fit_percent, score_simulation
-from .output_error import OECallback, OEResult, OETuning, identify_output_error
-from .prefit import PrefitResult, prefit
-from .simulate import simulate
-from .uncertainty import friction_band
-
-try:
-    __version__ = version("torchfric")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0.0.0+local"
+from .models.simulate import simulate
+from .runs.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from .runs.config import Config
+from .runs.export import export_model
+from .version import __version__
 
 __all__ = [
     "ArmModel",

@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from .arm import ArmModel
+from ..models.arm import ArmModel
 from .checkpoint import (
     build_checkpoint,
     load_checkpoint,
@@ -25,16 +25,17 @@ from .checkpoint import (
     sha256_file,
 )
 from .config import POSITION_UNITS, RIG_PREFIX, Config
-from .data import Experiment, data_warnings, load_experiment, make_experiment
-from .ensemble import EnsembleCallback, identify_ekf_ensemble
-from .errors import DivergenceError, RunInterrupted, TorchfricError
-from .friction import make_friction
-from .identify import EKFCallback, EKFResult, PassRecord, identify_ekf
-from .metrics import SimulationScore, score_simulation
-from .output_error import EpochRecord, OECallback, OEResult, identify_output_error
-from .prefit import prefit
-from .resources import ekf_bytes, prefit_bytes, require_memory
-from .rundir import RunDir, atomic_write_text, claim_run_dir, json_safe, locked, write_json
+from ..data import Experiment, data_warnings, load_experiment, make_experiment
+from ..estimators.ensemble import EnsembleCallback, identify_ekf_ensemble
+from ..errors import DivergenceError, RunInterrupted, TorchfricError
+from ..models.friction import make_friction
+from ..estimators.identify import EKFCallback, EKFResult, PassRecord, identify_ekf
+from ..estimators.metrics import SimulationScore, score_simulation
+from ..estimators.output_error import EpochRecord, OECallback, OEResult, identify_output_error
+from ..estimators.prefit import prefit
+from ..resources import ekf_bytes, prefit_bytes, require_memory
+from ..files import atomic_write_text, json_safe, write_json
+from .rundir import RunDir, claim_run_dir, locked
 
 __all__ = ["load_data", "initial_model", "train", "TrainResult", "evaluate_model"]
 
@@ -51,7 +52,7 @@ def _load_one(cfg: Config, path: str, warnings: list[str] | None = None) -> tupl
     """
     d = cfg.data
     if path.startswith(RIG_PREFIX):
-        from .rig import rig_experiment
+        from ..data.rig import rig_experiment
 
         name = path[len(RIG_PREFIX) :]
         arrays = rig_experiment(name, seed=cfg.seed)

@@ -21,8 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .arm import ArmModel
-from .errors import TorchfricError
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
 
 __all__ = ["friction_jacobian", "friction_band", "friction_samples"]
 

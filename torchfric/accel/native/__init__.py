@@ -88,8 +88,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..environment import native_enabled
-from ..errors import shorten
+from ...environment import native_enabled
+from ...errors import shorten
 from .emit import _source
 from .scalar import NativeUnavailable
 

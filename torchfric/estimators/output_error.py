@@ -49,148 +49,17 @@ import torch
 from torch import Tensor
 from torchdiffeq import odeint_adjoint
 
-from .arm import ArmModel
-from .data import Experiment
-from .errors import DivergenceError, TorchfricError
+from ..data import Experiment
+from ..errors import DivergenceError, TorchfricError
+from ..models.arm import ArmModel
+from ..models.simulate import ZOHField, auto_substeps, sample_grid, simulate
 from .metrics import score_simulation
-from .simulate import _ZOHField, auto_substeps, sample_grid, simulate
+from .observers import OECallback
+from .settings import OETuning
 
 __all__ = ["OETuning", "EpochRecord", "OEResult", "OECallback", "identify_output_error"]
 
 _METHOD = "rk4"
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _bad(key: str, value: Any, allowed: str) -> TorchfricError:
-    return TorchfricError(f"{key} = {value!r} is invalid; allowed: {allowed}")
-
-
-@dataclass(frozen=True)
-class OETuning:
-    """Output-error training settings.
-
-    Attributes:
-        epochs: Adam epochs (one batch of windows, or one full-length pass, per epoch); 0 with
-            `lbfgs_steps` > 0 runs L-BFGS alone (no Adam step, whose ≈ lr-sized move in every
-            coordinate can wreck a parameter whose own scale is below lr).
-        lr: initial Adam learning rate on θ in estimation coordinates.
-        lr_final: learning rate at the last epoch; cosine decay from `lr` (0 < lr_final <= lr).
-        window: samples per truncated window (multiple shooting); 0 = full length.
-        batch: windows per epoch, drawn at random start indices (seeded).
-        weights: loss weights ``(w_q, w_v)`` of the normalised q and q̇ errors.
-        clip: gradient-norm clipping threshold (0 = off).
-        lbfgs_steps: L-BFGS iterations after Adam on a fixed loss: full length when the last
-            window is 0, else every experiment tiled into non-overlapping windows of that length.
-        patience: early stop after this many validation evaluations without a better mean FIT.
-        eval_every: epochs between validation evaluations (and after the last epoch).
-        seed: window draws are a function of (seed, epoch) only (resumable, deterministic).
-        substeps: RK4 steps per sample interval, or "auto" (re-chosen every epoch from θ).
-        schedule: window lengths per stage, short to long; overrides `window`; epochs split
-            evenly over the stages (each entry >= 2, or 0 for full length).
-        adjoint: gradients by `torchdiffeq.odeint_adjoint` instead of backpropagation.
-        learn_states: multiple shooting with learned window initial states (module docstring);
-            needs a fixed `window` >= 2 and no `schedule`.
-        continuity: weight of the continuity penalty between consecutive tiles (learn_states).
-        compile: full-length simulations — validation, and training losses with window 0
-            (full-length Adam and L-BFGS) — through `simulate(..., engine="compiled")`: the same
-            rk4 steps as a compiled scan, its gradient by a compiled discrete adjoint (equal to
-            backpropagation through odeint to rounding). Windowed training stays on odeint.
-    """
-
-    epochs: int = 200
-    lr: float = 1e-2
-    lr_final: float = 1e-4
-    window: int = 200
-    batch: int = 64
-    weights: tuple[float, float] = (1.0, 1.0)
-    clip: float = 1.0
-    lbfgs_steps: int = 0
-    patience: int = 20
-    eval_every: int = 10
-    seed: int = 0
-    substeps: int | str = 1
-    schedule: tuple[int, ...] = ()
-    adjoint: bool = False
-    learn_states: bool = False
-    continuity: float = 1.0
-    compile: bool = False
-
-    def check(self, k: int) -> None:
-        """Validate against a model with k parameters; raises TorchfricError naming the key."""
-        if not _is_int(k) or k < 1:
-            raise _bad("k (number of parameters)", k, "an integer >= 1")
-        lbfgs_only = self.epochs == 0 and _is_int(self.lbfgs_steps) and self.lbfgs_steps > 0
-        if not _is_int(self.epochs) or (self.epochs < 1 and not lbfgs_only):
-            raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
-        for key in ("lr", "lr_final"):
-            v = getattr(self, key)
-            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise _bad(key, v, "a finite number > 0")
-        if self.lr_final > self.lr:
-            raise _bad("lr_final", self.lr_final, f"a number in (0, lr = {self.lr!r}]")
-        if not _is_int(self.window) or self.window < 0 or self.window == 1:
-            raise _bad("window", self.window, "0 (full length) or an integer >= 2 (samples)")
-        if not _is_int(self.batch) or self.batch < 1:
-            raise _bad("batch", self.batch, "an integer >= 1 (windows per epoch)")
-        w = tuple(self.weights)
-        if (
-            len(w) != 2
-            or not all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in w)
-            or sum(w) == 0
-        ):
-            raise _bad("weights", self.weights, "two finite numbers >= 0 (w_q, w_v), not both 0")
-        if not isinstance(self.clip, (int, float)) or not math.isfinite(self.clip) or self.clip < 0:
-            raise _bad("clip", self.clip, "a finite number >= 0 (0 = off)")
-        if not _is_int(self.lbfgs_steps) or self.lbfgs_steps < 0:
-            raise _bad("lbfgs_steps", self.lbfgs_steps, "an integer >= 0 (0 = no polish)")
-        if not _is_int(self.patience) or self.patience < 1:
-            raise _bad("patience", self.patience, "an integer >= 1 (validation evaluations)")
-        if not _is_int(self.eval_every) or self.eval_every < 1:
-            raise _bad("eval_every", self.eval_every, "an integer >= 1 (epochs)")
-        if not _is_int(self.seed) or self.seed < 0:
-            raise _bad("seed", self.seed, "an integer >= 0")
-        if self.substeps != "auto" and (not _is_int(self.substeps) or self.substeps < 1):
-            raise _bad("substeps", self.substeps, "an integer >= 1 or 'auto'")
-        s = tuple(self.schedule)
-        if not all(_is_int(x) and (x == 0 or x >= 2) for x in s) or len(s) > self.epochs:
-            raise _bad(
-                "schedule",
-                self.schedule,
-                f"at most epochs = {self.epochs} window lengths, each 0 (full length) or >= 2",
-            )
-        if not isinstance(self.adjoint, bool):
-            raise _bad("adjoint", self.adjoint, "true or false")
-        if not isinstance(self.learn_states, bool):
-            raise _bad("learn_states", self.learn_states, "true or false")
-        c = self.continuity
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c) or c < 0:
-            raise _bad("continuity", c, "a finite number >= 0")
-        if self.learn_states and (self.window < 2 or s):
-            raise _bad(
-                "learn_states",
-                self.learn_states,
-                "false, or true with a fixed window >= 2 and no schedule (the learned states "
-                f"belong to one tiling; got window = {self.window}, schedule = {list(s)})",
-            )
-
-    def window_at(self, epoch: int) -> int:
-        """Window length of (1-based) `epoch`: the schedule's stage, else `window`."""
-        if not self.schedule:
-            return self.window
-        if self.epochs == 0:
-            return self.schedule[-1]
-        stage = (epoch - 1) * len(self.schedule) // self.epochs
-        return self.schedule[stage]
-
-    def lr_at(self, epoch: int) -> float:
-        """Cosine decay ``lr_final + ½ (lr − lr_final)(1 + cos(π (e−1)/(E−1)))``, e = 1 … E."""
-        if self.epochs == 1:
-            return self.lr
-        frac = (epoch - 1) / (self.epochs - 1)
-        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * frac))
 
 
 @dataclass
@@ -250,14 +119,6 @@ class OEResult:
     @property
     def epochs(self) -> int:
         return len(self.history)
-
-
-class OECallback:
-    """Hooks the runner attaches (TensorBoard, progress, checkpoints). Defaults do nothing."""
-
-    def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
-        """Called after each epoch; return False to stop after this epoch."""
-        return None
 
 
 @dataclass
@@ -321,7 +182,7 @@ def _rollout(
         return simulate(model, t, u, x0, method=_METHOD, substeps=steps, theta=theta, engine=engine)
     # Same exact-ZOH field as `simulate`; the grid is built per call from the requested times, so
     # the adjoint's backward integration over [t_i, t_{i−1}] gets its own sub-step grid.
-    fieldfn = _ZOHField(model, t, u, theta)
+    fieldfn = ZOHField(model, t, u, theta)
     options = {"grid_constructor": lambda _f, _y0, tt: sample_grid(tt, steps), "perturb": True}
     return odeint_adjoint(fieldfn, x0, t, method=_METHOD, options=options, adjoint_params=(theta,))
 
@@ -521,7 +382,10 @@ def identify_output_error(
         )
     for w in (*tuning.schedule, tuning.window):
         if w > 0 and w > max(d.y.shape[0] for d in data):
-            raise _bad("window", w, f"0 or 2 … {max(d.y.shape[0] for d in data)} (samples)")
+            raise TorchfricError(
+                f"window = {w!r} is invalid; allowed: 0 or 2 … "
+                f"{max(d.y.shape[0] for d in data)} (samples)"
+            )
     callback = callback or OECallback()
     scale = _scales(data)
     weights = torch.tensor(tuple(tuning.weights), dtype=torch.float64)

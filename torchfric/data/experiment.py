@@ -33,10 +33,10 @@ import scipy.signal
 import torch
 from torch import Tensor
 
-from .errors import TorchfricError, shorten
-from .resources import available_memory as _available_memory
-from .resources import format_bytes as _format_bytes
-from .resources import require_memory
+from ..errors import TorchfricError, shorten
+from ..resources import available_memory as _available_memory
+from ..resources import format_bytes as _format_bytes
+from ..resources import require_memory
 
 __all__ = [
     "Experiment",

@@ -35,8 +35,10 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from .arm import ArmModel
-from .data import Experiment
+from ..data import Experiment
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from ..models.simulate import auto_substeps, simulate
 from .ekf import (
     CHUNK,
     EKFState,
@@ -52,15 +54,13 @@ from .ekf import (
     matmul_for,
     update,
 )
-from .errors import TorchfricError
 from .identify import (
-    EKFCallback,
     EKFResult,
-    EKFTuning,
     PassRecord,
     _measurements,
 )
-from .simulate import auto_substeps, simulate
+from .observers import EnsembleCallback
+from .settings import EKFTuning, EnsembleSpec
 
 __all__ = [
     "EnsembleSpec",
@@ -76,47 +76,6 @@ __all__ = [
 ]
 
 RUNNING, CONVERGED, ROLLED_BACK, DIVERGED = "running", "converged", "rolled_back", "diverged"
-
-
-@dataclass(frozen=True)
-class EnsembleSpec:
-    """Which members an ensemble holds.
-
-    Attributes:
-        members: random starts (member 0 is the given start itself).
-        spread: every θ entry of a random start is the start's value times a log-uniform factor
-            in ``[1/spread, spread]`` (log-stored entries: shifted by ``±ln spread``; a zero entry
-            stays zero). 3 is the issue's "×/÷ 3 broad box".
-        q_scales: factors applied to the whole process-noise intensity Q.
-        r_scales: factors applied to the measurement variances R.
-        seed: seed of the random starts.
-
-    The ensemble holds ``members × len(q_scales) × len(r_scales)`` filters: every start with
-    every tuning.
-    """
-
-    members: int = 16
-    spread: float = 3.0
-    q_scales: tuple[float, ...] = (1.0,)
-    r_scales: tuple[float, ...] = (1.0,)
-    seed: int = 0
-
-    def check(self) -> None:
-        if not isinstance(self.members, int) or isinstance(self.members, bool) or self.members < 1:
-            raise TorchfricError(f"ensemble members must be an integer >= 1, got {self.members!r}")
-        if not (math.isfinite(self.spread) and self.spread >= 1.0):
-            raise TorchfricError(
-                f"ensemble spread must be a finite factor >= 1, got {self.spread!r}"
-            )
-        for name, scales in (("q_scales", self.q_scales), ("r_scales", self.r_scales)):
-            if not scales or any((not math.isfinite(s)) or s <= 0 for s in scales):
-                raise TorchfricError(
-                    f"ensemble {name} must be a non-empty list of positive factors, got {list(scales)}"
-                )
-
-    @property
-    def size(self) -> int:
-        return self.members * len(self.q_scales) * len(self.r_scales)
 
 
 def random_thetas(
@@ -362,16 +321,6 @@ class EnsembleResult:
             "seconds": self.seconds,
             "filter_steps_per_second": self.filter_steps / max(self.seconds, 1e-9),
         }
-
-
-class EnsembleCallback(EKFCallback):
-    """Progress and per-pass hooks of an ensemble run (defaults do nothing)."""
-
-    def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
-        """After each pass, with the ensemble's whole state (θ `(K, k)` as "thetas", each
-        member's "status", its pass records in "histories", ...): enough to resume from with
-        `identify_ekf_ensemble(start=state)`. Return False to stop."""
-        return None
 
 
 def identify_ekf_ensemble(

@@ -36,9 +36,9 @@ import torch
 from torch import Tensor
 from torch.func import grad, jacrev
 
-from .arm import ArmModel
-from .errors import TorchfricError
-from .simulate import rk4_step
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from ..models.simulate import rk4_step
 
 __all__ = [
     "EKFState",
@@ -463,7 +463,7 @@ def make_chunk(
     inductor = compile_with_fallback(loop, traced, options=options)
     if not native:
         return _tagged(inductor)
-    from .native import NativeUnavailable, make_native_chunk
+    from ..accel.native import NativeUnavailable, make_native_chunk
 
     generated = make_native_chunk(fn, members=members, member_consts=member_consts)
     reasons: list[str] = []

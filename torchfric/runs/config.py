@@ -47,14 +47,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, NoReturn
 
-from .ekf import MEASUREMENTS
-from .ensemble import EnsembleSpec
-from .errors import TorchfricError, shorten
-from .friction import FRICTIONS
-from .identify import EKFTuning
-from .output_error import OETuning
-from .rig import EXPERIMENTS, RigParameters
-from .simulate import SOLVERS
+from ..estimators.ekf import MEASUREMENTS
+from ..estimators.ensemble import EnsembleSpec
+from ..errors import TorchfricError, shorten
+from ..models.friction import FRICTIONS
+from ..estimators.identify import EKFTuning
+from ..estimators.output_error import OETuning
+from ..data.rig import EXPERIMENTS, RigParameters
+from ..models.simulate import SOLVERS
 
 __all__ = [
     "Config",

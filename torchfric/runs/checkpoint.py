@@ -38,9 +38,10 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from .arm import ArmModel
-from .errors import TorchfricError
-from .rundir import atomic_write_bytes
+from ..models.arm import ArmModel
+from ..errors import TorchfricError
+from ..version import __version__
+from ..files import atomic_write_bytes
 
 if TYPE_CHECKING:
     from .config import Config
@@ -69,17 +70,6 @@ that existing checkpoints keep loading; a version without a path to FORMAT_VERSI
 _REQUIRED = ("model", "theta", "theta_names")
 _PLAIN = (str, int, float, bool, type(None))
 _ZIP_MAGIC = b"PK\x03\x04"
-
-
-def _torchfric_version() -> str:
-    from importlib import metadata
-
-    try:
-        return metadata.version("torchfric")
-    except metadata.PackageNotFoundError:
-        import torchfric
-
-        return str(getattr(torchfric, "__version__", "unknown"))
 
 
 def sha256_file(path: str | os.PathLike[str]) -> str:
@@ -167,7 +157,7 @@ def build_checkpoint(
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "torchfric_version": _torchfric_version(),
+        "torchfric_version": __version__,
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "name": str(name),
         "config": dict(cfg),
@@ -298,7 +288,7 @@ def _migrate_format(ckpt: dict[str, Any], version: int, path: pathlib.Path) -> d
         readable = str(FORMAT_VERSION) if oldest == FORMAT_VERSION else f"{oldest}-{FORMAT_VERSION}"
         raise TorchfricError(
             f"{path} has checkpoint format {version} (written by torchfric "
-            f"{ckpt.get('torchfric_version', '?')}); this torchfric ({_torchfric_version()}) reads "
+            f"{ckpt.get('torchfric_version', '?')}); this torchfric ({__version__}) reads "
             f"format {readable} and cannot migrate format {version}: re-create it with torchfric "
             "train from its config, or load it with the torchfric version that wrote it"
         )
@@ -351,7 +341,7 @@ def checkpoint_config(raw: Mapping[str, Any]) -> Config:
     except TorchfricError as exc:
         raise TorchfricError(
             f"checkpoint {name!r} (torchfric {raw.get('torchfric_version', '?')}): its stored "
-            f"config does not validate under torchfric {_torchfric_version()}: {exc}"
+            f"config does not validate under torchfric {__version__}: {exc}"
         ) from None
 
 

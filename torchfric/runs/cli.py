@@ -19,9 +19,9 @@ from collections.abc import Sequence
 
 import torch
 
-from .environment import check_environment
-from .errors import RunInterrupted, TorchfricError
-from .rundir import atomic_write_text, json_safe
+from ..environment import check_environment
+from ..errors import RunInterrupted, TorchfricError
+from ..files import atomic_write_text, json_safe
 
 __all__ = ["main"]
 
@@ -114,7 +114,7 @@ def _load_for_eval(checkpoint: str, data: str):  # type: ignore[no-untyped-def]
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .metrics import score_simulation
+    from ..estimators.metrics import score_simulation
 
     model, cfg, exp = _load_for_eval(args.checkpoint, args.data)
     score = score_simulation(
@@ -142,7 +142,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_simulate(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from .simulate import simulate
+    from ..models.simulate import simulate
 
     out = pathlib.Path(args.out)
     _refuse_overwrite(out, [args.checkpoint, args.data], args.force)
@@ -186,7 +186,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from .rig import generate
+    from ..data.rig import generate
 
     paths = generate(args.outdir, seed=args.seed, force=args.force)
     for name, path in paths.items():

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .arm import ArmModel
-from .data import Experiment
-from .errors import TorchfricError
-from .simulate import simulate
+from ..data import Experiment
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from ..models.simulate import simulate
 
 __all__ = [
     "fit_percent",

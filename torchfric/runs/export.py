@@ -34,10 +34,10 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .arm import ArmModel, arm_field, arm_friction
-from .errors import TorchfricError
-from .rundir import atomic_write_bytes
-from .simulate import SOLVERS
+from ..models.arm import ArmModel, arm_field, arm_friction
+from ..errors import TorchfricError
+from ..files import atomic_write_bytes
+from ..models.simulate import SOLVERS
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]
 

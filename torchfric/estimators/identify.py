@@ -9,7 +9,6 @@ is below `tolerance`, the passes stop early.
 from __future__ import annotations
 
 import copy
-import math
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -18,8 +17,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .arm import ArmModel
-from .data import Experiment
+from ..data import Experiment
+from ..errors import DivergenceError, TorchfricError
+from ..models.arm import ArmModel
 from .ekf import (
     MEASUREMENTS,
     EKFState,
@@ -28,121 +28,12 @@ from .ekf import (
     StepFn,
     make_propagator,
     make_step,
-    measurement_matrix,
     run_pass,
 )
-from .errors import DivergenceError, TorchfricError
+from .observers import EKFCallback
+from .settings import EKFTuning
 
 __all__ = ["EKFTuning", "PassRecord", "EKFResult", "EKFCallback", "identify_ekf"]
-
-
-def _vector(value: float | Sequence[float], n: int, name: str) -> Tensor:
-    t = torch.as_tensor(value, dtype=torch.float64).reshape(-1)
-    if t.numel() == 1:
-        t = t.expand(n).clone()
-    if t.numel() != n:
-        raise TorchfricError(f"{name} needs 1 or {n} values, got {t.numel()} ({value!r})")
-    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
-        raise TorchfricError(f"{name} must be finite variances >= 0, got {value!r}")
-    return t
-
-
-@dataclass(frozen=True)
-class EKFTuning:
-    """Filter tuning; defaults are the paper's (§5).
-
-    Attributes:
-        p0_state: initial variances of [q, q̇] (paper: 0, 0 — the initial state is known).
-        p0_theta: initial variance(s) of θ in estimation coordinates (paper: 1).
-        q_state: continuous process-noise intensities of [q, q̇] (paper: 0, 0.001).
-        q_theta: process-noise intensity of θ (paper: 0 — constant parameters).
-        r: measurement variances of the measured channels (paper: 0.001 for q, 0.01 for q̇).
-        measure: "both" (q and reconstructed q̇), "position" or "velocity".
-        passes: number of off-line passes (paper: 10).
-        tolerance: stop after a pass with ‖Δθ‖/‖θ‖ below this; 0 disables the early stop.
-        substeps: RK4 sub-steps per sample interval in the prediction.
-        theta_bound: divergence box on |θ| (estimation coordinates).
-        p0_relative: read `p0_theta` in units of each parameter's own size: the initial
-            variance of a linearly stored θ_i is ``p0_theta · θ_i²`` (log-stored entries are
-            already relative). The paper's P0 = 1 is absolute, which suits weights of order 1
-            but lets a centre of 0.04 rad/s jump by ±1 in the first pass.
-        rollback: undo a pass that lowers the innovation log-likelihood (θ and P_θθ go back to
-            the best pass) and stop there. Re-running the same pass from the same state would
-            repeat the same step, so stopping is the only sensible continuation. The undone pass
-            stays in the history with ``rolled_back = True``.
-        compile: run the per-sample step compiled, in chunks of samples: as C generated from
-            its traced graph (`torchfric.native`; a few seconds' build, cached on disk across
-            runs; over 1000× the eager step here), else through the Inductor scan, else eager —
-            the same arithmetic to rounding on every path.
-    """
-
-    p0_state: tuple[float, float] = (0.0, 0.0)
-    p0_theta: float | tuple[float, ...] = 1.0
-    q_state: tuple[float, float] = (0.0, 1e-3)
-    q_theta: float | tuple[float, ...] = 0.0
-    r: tuple[float, ...] = (1e-3, 1e-2)
-    measure: str = "both"
-    passes: int = 10
-    tolerance: float = 1e-4
-    substeps: int = 1
-    theta_bound: float = 1e6
-    compile: bool = False
-    p0_relative: bool = False
-    rollback: bool = True
-
-    def check(self, k: int) -> None:
-        """Validate against a model with k parameters; raises TorchfricError naming the field."""
-        if self.measure not in MEASUREMENTS:
-            raise TorchfricError(
-                f"measure = {self.measure!r} is not known; choose one of {sorted(MEASUREMENTS)}"
-            )
-        m = len(MEASUREMENTS[self.measure])
-        if len(self.r) != m:
-            raise TorchfricError(
-                f"r has {len(self.r)} values but measure = {self.measure!r} measures {m} channel(s); "
-                f"give {m}"
-            )
-        if any((not math.isfinite(v)) or v <= 0 for v in self.r):
-            raise TorchfricError(f"r must be positive measurement variances, got {list(self.r)}")
-        _vector(self.p0_state, 2, "p0_state")
-        _vector(self.q_state, 2, "q_state")
-        _vector(self.p0_theta, k, "p0_theta")
-        _vector(self.q_theta, k, "q_theta")
-        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or self.passes < 1:
-            raise TorchfricError(f"passes must be an integer >= 1, got {self.passes!r}")
-        if not (self.tolerance >= 0):
-            raise TorchfricError(
-                f"tolerance must be >= 0 (0 disables early stop), got {self.tolerance!r}"
-            )
-        if (
-            not isinstance(self.substeps, int)
-            or isinstance(self.substeps, bool)
-            or self.substeps < 1
-        ):
-            raise TorchfricError(f"substeps must be an integer >= 1, got {self.substeps!r}")
-        if not (self.theta_bound > 0):
-            raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")
-
-    def matrices(self, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(Q (n,n), P0_xx (2,2), H (m,n), R (m,m))`` for a model with k parameters."""
-        n = 2 + k
-        Q = torch.diag(
-            torch.cat([_vector(self.q_state, 2, "q_state"), _vector(self.q_theta, k, "q_theta")])
-        )
-        P0_xx = torch.diag(_vector(self.p0_state, 2, "p0_state"))
-        H = measurement_matrix(self.measure, n)
-        R = torch.diag(torch.as_tensor(self.r, dtype=torch.float64))
-        return Q, P0_xx, H, R
-
-    def initial_P_theta(self, model: ArmModel, theta: Tensor) -> Tensor:
-        """P_θθ at the start for θ `(..., k)` (a batch of starts gives `(..., k, k)`); with
-        `p0_relative`, each start's linearly stored entries are scaled by its own size."""
-        p0 = _vector(self.p0_theta, theta.shape[-1], "p0_theta")
-        if self.p0_relative:
-            size = torch.where(model.log_mask(), torch.ones_like(theta), theta.abs())
-            floor = 1e-6 * size.amax(dim=-1, keepdim=True)
-            p0 = p0 * torch.maximum(size, floor) ** 2
-        return torch.diag_embed(p0.expand_as(theta).clone())
 
 
 @dataclass
@@ -179,17 +70,6 @@ class EKFResult:
     @property
     def passes(self) -> int:
         return len(self.history)
-
-
-class EKFCallback:
-    """Hooks the runner attaches (TensorBoard, progress, checkpoints). Defaults do nothing."""
-
-    def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
-        """Called every `progress_every` samples inside a pass."""
-
-    def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
-        """Called after each pass; return False to stop after this pass."""
-        return None
 
 
 def _measurements(exp: Experiment, measure: str) -> Tensor:

@@ -28,10 +28,10 @@ import torch
 from torch import Tensor
 from torch.func import grad, vmap
 
-from .arm import ArmModel
-from .data import Experiment, zero_phase_acceleration, zero_phase_derivative
-from .errors import TorchfricError
-from .friction import make_friction
+from ..data import Experiment, zero_phase_acceleration, zero_phase_derivative
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from ..models.friction import make_friction
 
 __all__ = ["PrefitResult", "prefit", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION"]
 
@@ -296,8 +296,8 @@ def _native_rows(
     to the `vmap` forms to rounding. Each uses its given `vmap` form instead, from then on, if
     the translation fails or there is no C compiler. The generated code is kept per model
     structure, so later pre-fits of the same structure do not trace again."""
-    from .native import NativeUnavailable, make_native_chunk
-    from .simulate import _structure_key
+    from ..accel.native import NativeUnavailable, make_native_chunk
+    from ..models.simulate import _structure_key
 
     key = _structure_key(model)
     if key not in _ROW_CHUNKS:

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .errors import TorchfricError
+from ..errors import TorchfricError
 from .friction import Friction, make_friction
 
 __all__ = ["ArmModel", "arm_field", "arm_friction"]

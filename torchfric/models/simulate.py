@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 from torchdiffeq import odeint
 
+from ..errors import TorchfricError
 from .arm import ArmModel
-from .errors import TorchfricError
 
 __all__ = ["simulate", "rk4_step", "auto_substeps", "sample_grid", "SOLVERS", "ENGINES"]
 
@@ -37,7 +37,7 @@ _CHUNK = 1000
 SOLVERS: dict[str, float] = {"euler": 1.0, "midpoint": 1.5, "rk4": 2.0}
 
 
-class _ZOHField(nn.Module):
+class ZOHField(nn.Module):
     """``ẋ = f(x, u(t); θ)`` with ``u(t) = u_k`` for ``t ∈ [t_k, t_{k+1})`` (torchdiffeq signature)."""
 
     def __init__(self, model: ArmModel, t: Tensor, u: Tensor, theta: Tensor | None) -> None:
@@ -151,7 +151,7 @@ def simulate(
     th = model.theta_vector() if theta is None else theta
     if engine == "compiled" and method == "rk4":
         return _compiled_rk4(model, grid, u, x0, th, steps)
-    field = _ZOHField(model, t, u, theta)
+    field = ZOHField(model, t, u, theta)
     options = {"grid_constructor": lambda _f, _y0, _t: grid, "perturb": True}
     return odeint(field, x0, t, method=method, options=options)
 
@@ -191,7 +191,7 @@ def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-
     """
     key = (_structure_key(model), direction)
     if key not in _RK4_CHUNKS:
-        from .ekf import chunk_options, fused_matmul, make_chunk
+        from ..estimators.ekf import chunk_options, fused_matmul, make_chunk
 
         if direction == "forward":
 
@@ -221,7 +221,7 @@ def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-
 def _run_chunks(chunk, carry, xs, consts, *, reverse: bool = False):  # type: ignore[no-untyped-def]
     """Apply a `make_chunk` function along the leading axis of `xs` (T rows), `_CHUNK` rows per
     call (the last call padded); returns the final carry and each per-row output (T rows)."""
-    from .ekf import iter_chunks
+    from ..estimators.ekf import iter_chunks
 
     if reverse:
         xs = tuple(a.flip(0) for a in xs)

@@ -26,7 +26,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor, nn
 
-from .errors import TorchfricError
+from ..errors import TorchfricError
 
 __all__ = [
     "Friction",

@@ -61,8 +61,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import TorchfricError
-from .rundir import atomic_write_bytes, atomic_write_text
+from ..errors import TorchfricError
+from ..files import atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "RigParameters",

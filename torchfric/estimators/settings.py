@@ -1,0 +1,311 @@
+"""The estimators' settings: one frozen dataclass per estimator, the same one the config's
+sections build (`torchfric.runs.config`) and the Python API takes.
+
+- `EKFTuning`: the iterative augmented-state EKF (`identify_ekf`, and each ensemble member);
+- `EnsembleSpec`: which members an EKF ensemble holds (`identify_ekf_ensemble`);
+- `OETuning`: output-error training (`identify_output_error`).
+
+Each class holds its defaults and validates itself against a model (`check(k)`); nothing else in
+torchfric restates a default.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from .ekf import MEASUREMENTS, measurement_matrix
+
+__all__ = ["EKFTuning", "EnsembleSpec", "OETuning", "as_vector"]
+
+
+def as_vector(value: float | Sequence[float], n: int, name: str) -> Tensor:
+    t = torch.as_tensor(value, dtype=torch.float64).reshape(-1)
+    if t.numel() == 1:
+        t = t.expand(n).clone()
+    if t.numel() != n:
+        raise TorchfricError(f"{name} needs 1 or {n} values, got {t.numel()} ({value!r})")
+    if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
+        raise TorchfricError(f"{name} must be finite variances >= 0, got {value!r}")
+    return t
+
+
+@dataclass(frozen=True)
+class EKFTuning:
+    """Filter tuning; defaults are the paper's (§5).
+
+    Attributes:
+        p0_state: initial variances of [q, q̇] (paper: 0, 0 — the initial state is known).
+        p0_theta: initial variance(s) of θ in estimation coordinates (paper: 1).
+        q_state: continuous process-noise intensities of [q, q̇] (paper: 0, 0.001).
+        q_theta: process-noise intensity of θ (paper: 0 — constant parameters).
+        r: measurement variances of the measured channels (paper: 0.001 for q, 0.01 for q̇).
+        measure: "both" (q and reconstructed q̇), "position" or "velocity".
+        passes: number of off-line passes (paper: 10).
+        tolerance: stop after a pass with ‖Δθ‖/‖θ‖ below this; 0 disables the early stop.
+        substeps: RK4 sub-steps per sample interval in the prediction.
+        theta_bound: divergence box on |θ| (estimation coordinates).
+        p0_relative: read `p0_theta` in units of each parameter's own size: the initial
+            variance of a linearly stored θ_i is ``p0_theta · θ_i²`` (log-stored entries are
+            already relative). The paper's P0 = 1 is absolute, which suits weights of order 1
+            but lets a centre of 0.04 rad/s jump by ±1 in the first pass.
+        rollback: undo a pass that lowers the innovation log-likelihood (θ and P_θθ go back to
+            the best pass) and stop there. Re-running the same pass from the same state would
+            repeat the same step, so stopping is the only sensible continuation. The undone pass
+            stays in the history with ``rolled_back = True``.
+        compile: run the per-sample step compiled, in chunks of samples: as C generated from
+            its traced graph (`torchfric.native`; a few seconds' build, cached on disk across
+            runs; over 1000× the eager step here), else through the Inductor scan, else eager —
+            the same arithmetic to rounding on every path.
+    """
+
+    p0_state: tuple[float, float] = (0.0, 0.0)
+    p0_theta: float | tuple[float, ...] = 1.0
+    q_state: tuple[float, float] = (0.0, 1e-3)
+    q_theta: float | tuple[float, ...] = 0.0
+    r: tuple[float, ...] = (1e-3, 1e-2)
+    measure: str = "both"
+    passes: int = 10
+    tolerance: float = 1e-4
+    substeps: int = 1
+    theta_bound: float = 1e6
+    compile: bool = False
+    p0_relative: bool = False
+    rollback: bool = True
+
+    def check(self, k: int) -> None:
+        """Validate against a model with k parameters; raises TorchfricError naming the field."""
+        if self.measure not in MEASUREMENTS:
+            raise TorchfricError(
+                f"measure = {self.measure!r} is not known; choose one of {sorted(MEASUREMENTS)}"
+            )
+        m = len(MEASUREMENTS[self.measure])
+        if len(self.r) != m:
+            raise TorchfricError(
+                f"r has {len(self.r)} values but measure = {self.measure!r} measures {m} channel(s); "
+                f"give {m}"
+            )
+        if any((not math.isfinite(v)) or v <= 0 for v in self.r):
+            raise TorchfricError(f"r must be positive measurement variances, got {list(self.r)}")
+        as_vector(self.p0_state, 2, "p0_state")
+        as_vector(self.q_state, 2, "q_state")
+        as_vector(self.p0_theta, k, "p0_theta")
+        as_vector(self.q_theta, k, "q_theta")
+        if not isinstance(self.passes, int) or isinstance(self.passes, bool) or self.passes < 1:
+            raise TorchfricError(f"passes must be an integer >= 1, got {self.passes!r}")
+        if not (self.tolerance >= 0):
+            raise TorchfricError(
+                f"tolerance must be >= 0 (0 disables early stop), got {self.tolerance!r}"
+            )
+        if (
+            not isinstance(self.substeps, int)
+            or isinstance(self.substeps, bool)
+            or self.substeps < 1
+        ):
+            raise TorchfricError(f"substeps must be an integer >= 1, got {self.substeps!r}")
+        if not (self.theta_bound > 0):
+            raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")
+
+    def matrices(self, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(Q (n,n), P0_xx (2,2), H (m,n), R (m,m))`` for a model with k parameters."""
+        n = 2 + k
+        Q = torch.diag(
+            torch.cat(
+                [as_vector(self.q_state, 2, "q_state"), as_vector(self.q_theta, k, "q_theta")]
+            )
+        )
+        P0_xx = torch.diag(as_vector(self.p0_state, 2, "p0_state"))
+        H = measurement_matrix(self.measure, n)
+        R = torch.diag(torch.as_tensor(self.r, dtype=torch.float64))
+        return Q, P0_xx, H, R
+
+    def initial_P_theta(self, model: ArmModel, theta: Tensor) -> Tensor:
+        """P_θθ at the start for θ `(..., k)` (a batch of starts gives `(..., k, k)`); with
+        `p0_relative`, each start's linearly stored entries are scaled by its own size."""
+        p0 = as_vector(self.p0_theta, theta.shape[-1], "p0_theta")
+        if self.p0_relative:
+            size = torch.where(model.log_mask(), torch.ones_like(theta), theta.abs())
+            floor = 1e-6 * size.amax(dim=-1, keepdim=True)
+            p0 = p0 * torch.maximum(size, floor) ** 2
+        return torch.diag_embed(p0.expand_as(theta).clone())
+
+
+@dataclass(frozen=True)
+class EnsembleSpec:
+    """Which members an ensemble holds.
+
+    Attributes:
+        members: random starts (member 0 is the given start itself).
+        spread: every θ entry of a random start is the start's value times a log-uniform factor
+            in ``[1/spread, spread]`` (log-stored entries: shifted by ``±ln spread``; a zero entry
+            stays zero). 3 is the issue's "×/÷ 3 broad box".
+        q_scales: factors applied to the whole process-noise intensity Q.
+        r_scales: factors applied to the measurement variances R.
+        seed: seed of the random starts.
+
+    The ensemble holds ``members × len(q_scales) × len(r_scales)`` filters: every start with
+    every tuning.
+    """
+
+    members: int = 16
+    spread: float = 3.0
+    q_scales: tuple[float, ...] = (1.0,)
+    r_scales: tuple[float, ...] = (1.0,)
+    seed: int = 0
+
+    def check(self) -> None:
+        if not isinstance(self.members, int) or isinstance(self.members, bool) or self.members < 1:
+            raise TorchfricError(f"ensemble members must be an integer >= 1, got {self.members!r}")
+        if not (math.isfinite(self.spread) and self.spread >= 1.0):
+            raise TorchfricError(
+                f"ensemble spread must be a finite factor >= 1, got {self.spread!r}"
+            )
+        for name, scales in (("q_scales", self.q_scales), ("r_scales", self.r_scales)):
+            if not scales or any((not math.isfinite(s)) or s <= 0 for s in scales):
+                raise TorchfricError(
+                    f"ensemble {name} must be a non-empty list of positive factors, got {list(scales)}"
+                )
+
+    @property
+    def size(self) -> int:
+        return self.members * len(self.q_scales) * len(self.r_scales)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _bad(key: str, value: Any, allowed: str) -> TorchfricError:
+    return TorchfricError(f"{key} = {value!r} is invalid; allowed: {allowed}")
+
+
+@dataclass(frozen=True)
+class OETuning:
+    """Output-error training settings.
+
+    Attributes:
+        epochs: Adam epochs (one batch of windows, or one full-length pass, per epoch); 0 with
+            `lbfgs_steps` > 0 runs L-BFGS alone (no Adam step, whose ≈ lr-sized move in every
+            coordinate can wreck a parameter whose own scale is below lr).
+        lr: initial Adam learning rate on θ in estimation coordinates.
+        lr_final: learning rate at the last epoch; cosine decay from `lr` (0 < lr_final <= lr).
+        window: samples per truncated window (multiple shooting); 0 = full length.
+        batch: windows per epoch, drawn at random start indices (seeded).
+        weights: loss weights ``(w_q, w_v)`` of the normalised q and q̇ errors.
+        clip: gradient-norm clipping threshold (0 = off).
+        lbfgs_steps: L-BFGS iterations after Adam on a fixed loss: full length when the last
+            window is 0, else every experiment tiled into non-overlapping windows of that length.
+        patience: early stop after this many validation evaluations without a better mean FIT.
+        eval_every: epochs between validation evaluations (and after the last epoch).
+        seed: window draws are a function of (seed, epoch) only (resumable, deterministic).
+        substeps: RK4 steps per sample interval, or "auto" (re-chosen every epoch from θ).
+        schedule: window lengths per stage, short to long; overrides `window`; epochs split
+            evenly over the stages (each entry >= 2, or 0 for full length).
+        adjoint: gradients by `torchdiffeq.odeint_adjoint` instead of backpropagation.
+        learn_states: multiple shooting with learned window initial states (module docstring);
+            needs a fixed `window` >= 2 and no `schedule`.
+        continuity: weight of the continuity penalty between consecutive tiles (learn_states).
+        compile: full-length simulations — validation, and training losses with window 0
+            (full-length Adam and L-BFGS) — through `simulate(..., engine="compiled")`: the same
+            rk4 steps as a compiled scan, its gradient by a compiled discrete adjoint (equal to
+            backpropagation through odeint to rounding). Windowed training stays on odeint.
+    """
+
+    epochs: int = 200
+    lr: float = 1e-2
+    lr_final: float = 1e-4
+    window: int = 200
+    batch: int = 64
+    weights: tuple[float, float] = (1.0, 1.0)
+    clip: float = 1.0
+    lbfgs_steps: int = 0
+    patience: int = 20
+    eval_every: int = 10
+    seed: int = 0
+    substeps: int | str = 1
+    schedule: tuple[int, ...] = ()
+    adjoint: bool = False
+    learn_states: bool = False
+    continuity: float = 1.0
+    compile: bool = False
+
+    def check(self, k: int) -> None:
+        """Validate against a model with k parameters; raises TorchfricError naming the key."""
+        if not _is_int(k) or k < 1:
+            raise _bad("k (number of parameters)", k, "an integer >= 1")
+        lbfgs_only = self.epochs == 0 and _is_int(self.lbfgs_steps) and self.lbfgs_steps > 0
+        if not _is_int(self.epochs) or (self.epochs < 1 and not lbfgs_only):
+            raise _bad("epochs", self.epochs, "an integer >= 1, or 0 with lbfgs_steps > 0")
+        for key in ("lr", "lr_final"):
+            v = getattr(self, key)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise _bad(key, v, "a finite number > 0")
+        if self.lr_final > self.lr:
+            raise _bad("lr_final", self.lr_final, f"a number in (0, lr = {self.lr!r}]")
+        if not _is_int(self.window) or self.window < 0 or self.window == 1:
+            raise _bad("window", self.window, "0 (full length) or an integer >= 2 (samples)")
+        if not _is_int(self.batch) or self.batch < 1:
+            raise _bad("batch", self.batch, "an integer >= 1 (windows per epoch)")
+        w = tuple(self.weights)
+        if (
+            len(w) != 2
+            or not all(isinstance(x, (int, float)) and math.isfinite(x) and x >= 0 for x in w)
+            or sum(w) == 0
+        ):
+            raise _bad("weights", self.weights, "two finite numbers >= 0 (w_q, w_v), not both 0")
+        if not isinstance(self.clip, (int, float)) or not math.isfinite(self.clip) or self.clip < 0:
+            raise _bad("clip", self.clip, "a finite number >= 0 (0 = off)")
+        if not _is_int(self.lbfgs_steps) or self.lbfgs_steps < 0:
+            raise _bad("lbfgs_steps", self.lbfgs_steps, "an integer >= 0 (0 = no polish)")
+        if not _is_int(self.patience) or self.patience < 1:
+            raise _bad("patience", self.patience, "an integer >= 1 (validation evaluations)")
+        if not _is_int(self.eval_every) or self.eval_every < 1:
+            raise _bad("eval_every", self.eval_every, "an integer >= 1 (epochs)")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise _bad("seed", self.seed, "an integer >= 0")
+        if self.substeps != "auto" and (not _is_int(self.substeps) or self.substeps < 1):
+            raise _bad("substeps", self.substeps, "an integer >= 1 or 'auto'")
+        s = tuple(self.schedule)
+        if not all(_is_int(x) and (x == 0 or x >= 2) for x in s) or len(s) > self.epochs:
+            raise _bad(
+                "schedule",
+                self.schedule,
+                f"at most epochs = {self.epochs} window lengths, each 0 (full length) or >= 2",
+            )
+        if not isinstance(self.adjoint, bool):
+            raise _bad("adjoint", self.adjoint, "true or false")
+        if not isinstance(self.learn_states, bool):
+            raise _bad("learn_states", self.learn_states, "true or false")
+        c = self.continuity
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c) or c < 0:
+            raise _bad("continuity", c, "a finite number >= 0")
+        if self.learn_states and (self.window < 2 or s):
+            raise _bad(
+                "learn_states",
+                self.learn_states,
+                "false, or true with a fixed window >= 2 and no schedule (the learned states "
+                f"belong to one tiling; got window = {self.window}, schedule = {list(s)})",
+            )
+
+    def window_at(self, epoch: int) -> int:
+        """Window length of (1-based) `epoch`: the schedule's stage, else `window`."""
+        if not self.schedule:
+            return self.window
+        if self.epochs == 0:
+            return self.schedule[-1]
+        stage = (epoch - 1) * len(self.schedule) // self.epochs
+        return self.schedule[stage]
+
+    def lr_at(self, epoch: int) -> float:
+        """Cosine decay ``lr_final + ½ (lr − lr_final)(1 + cos(π (e−1)/(E−1)))``, e = 1 … E."""
+        if self.epochs == 1:
+            return self.lr
+        frac = (epoch - 1) / (self.epochs - 1)
+        return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * frac))
