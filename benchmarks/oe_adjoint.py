@@ -35,7 +35,7 @@ import json, resource, sys, time
 import torch
 torch.set_num_threads(1)
 from torchfric.runs.config import Config
-from torchfric.estimators.output_error import _prepare, _scales, _full_loss
+from torchfric.estimators.shooting import full_loss as _full_loss, prepare as _prepare, scales as _scales
 from torchfric.estimators.prefit import prefit
 from torchfric.runs.runner import config_model, load_data
 

@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from torchfric import ArmModel, Experiment, load_checkpoint, make_experiment, read_checkpoint
-from torchfric.data.experiment import zero_phase_acceleration, zero_phase_derivative
+from torchfric.data import zero_phase_acceleration, zero_phase_derivative
 from torchfric.runs.export import ExportedArm
 from torchfric.estimators.metrics import fit_percent, friction_curve_error, rms
 from torchfric.data.rig import RigParameters, rig_experiment

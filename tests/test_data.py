@@ -1,4 +1,4 @@
-"""Tests of torchfric.data.experiment: velocity reconstruction against exact derivatives and the filters'
+"""Tests of torchfric.data: velocity reconstruction against exact derivatives and the filters'
 own frequency responses, loaders against files written here, and every bad-input message."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from torchfric.data.experiment import (
+from torchfric.data import (
     DEFAULT_CUTOFF_HZ,
     Experiment,
     highpass_derivative,

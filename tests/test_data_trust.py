@@ -1,4 +1,4 @@
-"""Tests of torchfric.data.experiment's guards against files it cannot load (directories, pipes, devices,
+"""Tests of torchfric.data's guards against files it cannot load (directories, pipes, devices,
 files too large for memory, binary, empty or non-UTF-8 files) and of `data_warnings`, which flags
 records that would almost certainly give a wrong model (clipped input, t in ms)."""
 
@@ -14,8 +14,10 @@ import numpy as np
 import pytest
 import scipy.io
 
-import torchfric.data.experiment as data_module
-from torchfric.data.experiment import Experiment, data_warnings, load_experiment, make_experiment
+import torchfric.data.checks as checks_module
+import torchfric.data.guards as guards_module
+import torchfric.data.readers as readers_module
+from torchfric.data import Experiment, data_warnings, load_experiment, make_experiment
 from torchfric.data.rig import EXPERIMENTS, rig_experiment
 from torchfric.errors import TorchfricError
 
@@ -112,18 +114,18 @@ def test_sparse_20_gib_csv_is_refused_before_reading(
     tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     path = _sparse(tmp_path / "x.csv", 20 * GIB)
-    monkeypatch.setattr(data_module, "_available_memory", lambda: int(9.1 * GIB))
+    monkeypatch.setattr(guards_module, "_available_memory", lambda: int(9.1 * GIB))
 
     def no_parse(*args: object, **kwargs: object) -> None:
         raise AssertionError("the file was parsed before the memory check")
 
-    monkeypatch.setattr(data_module.np, "loadtxt", no_parse)
-    monkeypatch.setattr(data_module, "_read_csv", no_parse)
+    monkeypatch.setattr(readers_module.np, "loadtxt", no_parse)
+    monkeypatch.setattr(readers_module, "_read_csv", no_parse)
     start = time.perf_counter()
     text = _one_line_error(path, r"x\.csv is 20\.0 GiB: loading it needs about")
     assert time.perf_counter() - start < 2.0
     # no row of text in it: the bound of 4 bytes of float64 per byte of file, × the load ratio
-    need = 20 * data_module._CSV_MAX_EXPANSION * data_module._LOAD_MEMORY_RATIO
+    need = 20 * guards_module._CSV_MAX_EXPANSION * guards_module._LOAD_MEMORY_RATIO
     assert f"needs about {need:.0f} GiB of memory and 9.1 GiB is available" in text
     assert "data.start/data.stop apply only after loading" in text and "split it" in text
 
@@ -145,13 +147,13 @@ def test_csv_estimate_reads_the_row_length_from_the_first_rows(
 ) -> None:
     path = _write_csv(tmp_path / "rows.csv", n=20_000)  # ≈ 60 bytes per row of 3 values
     size = path.stat().st_size
-    arrays = data_module._csv_array_bytes(path, size)
+    arrays = guards_module._csv_array_bytes(path, size)
     assert arrays == pytest.approx(20_000 * 3 * 8, rel=0.05)
-    assert arrays < data_module._CSV_MAX_EXPANSION * size / 5  # far below the dense-text bound
-    monkeypatch.setattr(data_module, "_available_memory", lambda: 1 << 20)
+    assert arrays < guards_module._CSV_MAX_EXPANSION * size / 5  # far below the dense-text bound
+    monkeypatch.setattr(guards_module, "_available_memory", lambda: 1 << 20)
     text = _one_line_error(path, r"rows\.csv is 1\.\d MiB: loading it needs about 1\.1 MiB")
     assert "1.0 MiB is available" in text
-    monkeypatch.setattr(data_module, "_available_memory", lambda: 2 << 20)
+    monkeypatch.setattr(guards_module, "_available_memory", lambda: 2 << 20)
     assert load_experiment(path).n == 20_000  # enough: loads
 
 
@@ -162,12 +164,12 @@ def test_compressed_npz_is_judged_by_its_uncompressed_size(
     n = 400_000
     np.savez_compressed(path, t=np.arange(n) * 1e-3, u=np.zeros(n), q=np.zeros(n))
     assert path.stat().st_size < 1 << 20  # zeros compress to almost nothing
-    monkeypatch.setattr(data_module, "_available_memory", lambda: 8 << 20)
+    monkeypatch.setattr(guards_module, "_available_memory", lambda: 8 << 20)
     _one_line_error(path, r"z\.npz is .*: loading it needs about 2[0-9]\.\d MiB of memory")
 
 
 def test_available_memory_is_a_positive_byte_count() -> None:
-    avail = data_module._available_memory()
+    avail = guards_module._available_memory()
     if avail is None:
         pytest.skip("this platform reports no available memory")
     assert isinstance(avail, int) and avail > 0
@@ -231,7 +233,7 @@ def test_bad_values_are_echoed_briefly(tmp_path: pathlib.Path) -> None:
     text = _one_line_error(path, r"long\.csv: header .* has empty or repeated column names")
     assert text.count("y") < 210
     # a header line longer than 1 MiB (e.g. a text file without line breaks) is refused
-    path.write_text("z" * (data_module._MAX_LINE + 10) + "\n")
+    path.write_text("z" * (readers_module._MAX_LINE + 10) + "\n")
     _one_line_error(path, r"long\.csv: line 1 is longer than 1024 KiB")
 
 
@@ -260,7 +262,7 @@ def _clipped(fraction: float) -> Experiment:
 
 
 def test_data_warnings_is_exported_and_pure() -> None:
-    assert "data_warnings" in data_module.__all__
+    assert "data_warnings" in checks_module.__all__
     exp = _clipped(0.6)
     before = exp.fingerprint()
     assert data_warnings(exp) == data_warnings(exp)

@@ -13,9 +13,9 @@ import math
 import pytest
 import torch
 
-from torchfric.accel import native
+from torchfric.accel import CHUNK, make_chunk, native
 from torchfric.accel.native import NativeUnavailable, make_native_chunk
-from torchfric.estimators.ekf import CHUNK, make_chunk, make_propagator, make_step
+from torchfric.estimators.ekf import make_propagator, make_step
 from torchfric.estimators.ensemble import make_masked_step
 from torchfric.estimators.identify import EKFTuning
 from torchfric.models.arm import ArmModel
@@ -272,12 +272,12 @@ def test_compiled_code_is_cached_on_disk_and_reused(monkeypatch, tmp_path) -> No
     libs = list(native.cache_dir().glob("step_*.so"))
     assert len(libs) == 1
     # A new process has nothing loaded: it must find the library without compiling.
-    monkeypatch.setattr(native, "_LOADED", {})
+    monkeypatch.setattr(native.cache, "_LOADED", {})
 
     def no_compiler(*a, **k):  # type: ignore[no-untyped-def]
         raise AssertionError("compiled again instead of loading the cached library")
 
-    monkeypatch.setattr(native.subprocess, "run", no_compiler)
+    monkeypatch.setattr(native.cache.subprocess, "run", no_compiler)
     (again,), _ = make_native_chunk(fn)(*args)
     assert torch.equal(first, again)
     assert list(native.cache_dir().glob("step_*.so")) == libs
@@ -348,7 +348,9 @@ def test_tensors_off_the_cpu_are_refused_before_any_pointer_is_taken() -> None:
 def test_a_compiler_that_rejects_the_fast_flags_gets_the_portable_ones(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """-march=native is not accepted everywhere: the build retries without it, and a compiler
     that fails on both says why (and the chunk falls back)."""
-    monkeypatch.setattr(native, "_FLAGS", [*native._PORTABLE_FLAGS, "-fno-such-flag-here"])
+    monkeypatch.setattr(
+        native.cache, "_FLAGS", [*native.cache._PORTABLE_FLAGS, "-fno-such-flag-here"]
+    )
 
     def fn(x, c):  # type: ignore[no-untyped-def]
         return (torch.sin(x) * c,), ()
@@ -359,8 +361,8 @@ def test_a_compiler_that_rejects_the_fast_flags_gets_the_portable_ones(monkeypat
     for _ in range(3):
         expect = torch.sin(expect) * 0.5
     torch.testing.assert_close(x, expect, rtol=1e-15, atol=0)
-    monkeypatch.setattr(native, "_PORTABLE_FLAGS", native._FLAGS)
-    monkeypatch.setattr(native, "_LOADED", {})
+    monkeypatch.setattr(native.cache, "_PORTABLE_FLAGS", native.cache._FLAGS)
+    monkeypatch.setattr(native.cache, "_LOADED", {})
 
     def other(x, c):  # type: ignore[no-untyped-def]
         return (torch.cos(x) * c,), ()

@@ -24,10 +24,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchfric.accel import native
+from torchfric.accel import make_chunk, native
 from torchfric.accel.native import NativeCacheWarning, NativeUnavailable, make_native_chunk
 from torchfric.errors import TorchfricError
-from torchfric.estimators.ekf import make_chunk
 
 pytestmark = pytest.mark.skipif(native.compiler() is None, reason="no C compiler here")
 
@@ -79,7 +78,7 @@ def built(tmp_path_factory) -> Path:  # type: ignore[no-untyped-def]
     folder = tmp_path_factory.mktemp("built") / "cache"
     mp = pytest.MonkeyPatch()
     mp.setenv("TORCHFRIC_CACHE", str(folder))
-    mp.setattr(native, "_LOADED", {})
+    mp.setattr(native.cache, "_LOADED", {})
     try:
         _check(_run())
     finally:
@@ -122,9 +121,9 @@ def cache(tmp_path, monkeypatch) -> Path:  # type: ignore[no-untyped-def]
     monkeypatch.setenv("TORCHFRIC_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("TORCHFRIC_TEST_MARKER", str(tmp_path / "planted-code-ran"))
     monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
-    monkeypatch.setattr(native, "_LOADED", {})
-    monkeypatch.setattr(native, "_WARNED", set())
-    monkeypatch.setattr(native, "_PRIVATE", None)
+    monkeypatch.setattr(native.cache, "_LOADED", {})
+    monkeypatch.setattr(native.cache, "_WARNED", set())
+    monkeypatch.setattr(native.cache, "_PRIVATE", None)
     return tmp_path / "cache"
 
 
@@ -207,7 +206,7 @@ def test_a_cache_folder_others_can_write_is_refused(kind, built, planted, tmp_pa
     _marker_absent(tmp_path)
     assert {p.name: _sha(p) for p in cache.iterdir()} == before, "wrote into a refused folder"
     assert stat.S_IMODE(cache.stat().st_mode) == mode
-    private = native._PRIVATE
+    private = native.cache._PRIVATE
     assert private is not None and private != cache
     assert stat.S_IMODE(private.stat().st_mode) == 0o700
     assert _verifies(private / lib.name)
@@ -229,8 +228,8 @@ def _give_away(path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
         return os.stat_result(fields)
 
     real_fstat, real_stat = os.fstat, os.stat
-    monkeypatch.setattr(native.os, "fstat", lambda fd: other(real_fstat(fd)))
-    monkeypatch.setattr(native.os, "stat", lambda p, *a, **k: other(real_stat(p, *a, **k)))
+    monkeypatch.setattr(native.cache.os, "fstat", lambda fd: other(real_fstat(fd)))
+    monkeypatch.setattr(native.cache.os, "stat", lambda p, *a, **k: other(real_stat(p, *a, **k)))
 
 
 def test_a_cache_folder_owned_by_another_user_is_refused(  # type: ignore[no-untyped-def]
@@ -242,7 +241,7 @@ def test_a_cache_folder_owned_by_another_user_is_refused(  # type: ignore[no-unt
     with pytest.warns(NativeCacheWarning, match=f"{re.escape(str(cache))}.*owned by uid"):
         _check(_run())
     _marker_absent(tmp_path)
-    assert _verifies(native._PRIVATE / lib.name)
+    assert _verifies(native.cache._PRIVATE / lib.name)
 
 
 @pytest.mark.parametrize("problem", ["owned by another user", "writable by others", "a link"])
@@ -265,7 +264,7 @@ def test_a_library_file_others_could_have_written_is_refused(  # type: ignore[no
     with pytest.warns(NativeCacheWarning, match=f"{re.escape(str(lib))}.*{expected}"):
         _check(_run())
     _marker_absent(tmp_path)
-    assert _verifies(native._PRIVATE / lib.name)
+    assert _verifies(native.cache._PRIVATE / lib.name)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,7 +415,7 @@ def test_an_unusable_cache_setting_warns_and_builds_privately(  # type: ignore[n
     ):
         _check(_run())
     assert target.read_text() == "a file"
-    assert list(native._PRIVATE.glob("step_*.so"))
+    assert list(native.cache._PRIVATE.glob("step_*.so"))
 
 
 def test_a_full_disk_falls_back_with_the_reason(monkeypatch, cache) -> None:  # type: ignore[no-untyped-def]
@@ -425,7 +424,7 @@ def test_a_full_disk_falls_back_with_the_reason(monkeypatch, cache) -> None:  # 
     def full(*args, **kwargs):  # type: ignore[no-untyped-def]
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(native, "_compile", full)
+    monkeypatch.setattr(native.cache, "_compile", full)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for _ in range(2):

@@ -21,15 +21,15 @@ from torchfric.estimators.output_error import (
     EpochRecord,
     OECallback,
     OETuning,
-    _draw,
-    _full_loss,
-    _generator,
-    _prepare,
-    _same_grid,
-    _scales,
-    _tiles,
     identify_output_error,
 )
+from torchfric.estimators.shooting import cut_tiles as _tiles
+from torchfric.estimators.shooting import draw_windows as _draw
+from torchfric.estimators.shooting import epoch_generator as _generator
+from torchfric.estimators.shooting import full_loss as _full_loss
+from torchfric.estimators.shooting import group_by_grid as _same_grid
+from torchfric.estimators.shooting import prepare as _prepare
+from torchfric.estimators.shooting import scales as _scales
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import OddTanhFriction
 from torchfric.models.simulate import simulate

@@ -17,7 +17,7 @@ import scipy.io
 import torch
 
 from torchfric import ArmModel, OddTanhFriction, load_experiment
-from torchfric.data.experiment import Experiment
+from torchfric.data import Experiment
 from torchfric.errors import TorchfricError
 from torchfric.estimators.metrics import rms, score_benchmark, window_initial_state
 from torchfric.models.friction import CoulombFriction

@@ -15,13 +15,13 @@ import scipy.integrate
 import torch
 
 from torchfric.accel import native
+from torchfric.accel.simulation import rk4_chunk
 from torchfric.errors import TorchfricError
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import CoulombFriction, OddTanhFriction, PolytopicFriction
 from torchfric.models.simulate import (
     ENGINES,
     SOLVERS,
-    _rk4_chunk,
     auto_substeps,
     sample_grid,
     simulate,
@@ -517,5 +517,5 @@ def test_compiled_engine_gradient_equals_backprop_through_odeint(batch) -> None:
         torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
     if native.compiler() is not None:  # both scans ran as generated C
         for direction in ("forward", "backward"):
-            chunk = _rk4_chunk(model, direction)
+            chunk = rk4_chunk(model, direction)
             assert chunk.path == "native", chunk.why_not_native

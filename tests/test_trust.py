@@ -257,16 +257,16 @@ def test_a_second_run_into_a_locked_directory_stops_naming_the_owner(
 def test_ctrl_c_names_the_last_pass_and_the_resume_command(
     tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import torchfric.runs.runner as runner
+    import torchfric.runs.snapshots as snapshots
 
-    original = runner._RunLogger.on_pass_end
+    original = snapshots.Snapshots.on_pass_end
 
     def interrupt_after_pass_1(self, record, result):  # type: ignore[no-untyped-def]
         original(self, record, result)
         if record.index == 1:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(runner._RunLogger, "on_pass_end", interrupt_after_pass_1)
+    monkeypatch.setattr(snapshots.Snapshots, "on_pass_end", interrupt_after_pass_1)
     cfg = _rig_config(tmp_path)
     args = ["train", str(cfg), "--quiet", "--set", "data.stop=1500", "--set", "estimator.passes=2",
             "--set", "estimator.tolerance=0"]  # fmt: skip

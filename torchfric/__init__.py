@@ -8,7 +8,6 @@ Public API (the CLI is a thin layer over it)::
     arm = torchfric.load_checkpoint("checkpoints/arm_tanh_ekf.pt")
 """
 
-
 from .data import (
     Experiment,
     load_experiment,
@@ -17,31 +16,71 @@ from .data import (
     save_csv,
 )
 from .errors import DivergenceError, TorchfricError
-from .estimators.ekf import EKFState, Innovation, predict, update
-from .estimators.ensemble import EnsembleResult, EnsembleSpec, identify_ekf_ensemble
-from .estimators.identify import EKFCallback, EKFResult, EKFTuning, PassRecord, identify_ekf
-from .estimators.metrics import fit_percent, score_simulation
-from .estimators.output_error import OECallback, OEResult, OETuning, identify_output_error
-from .estimators.prefit import PrefitResult, prefit
-from .estimators.uncertainty import friction_band
-from .models.arm import ArmModel
-from .models.friction import (
+from .estimators import (
+    Callback,
+    EKFCallback,
+    EKFResult,
+    EKFState,
+    EKFTuning,
+    EnsembleResult,
+    EnsembleSpec,
+    Innovation,
+    OECallback,
+    OEResult,
+    OETuning,
+    PassRecord,
+    PrefitResult,
+    fit_percent,
+    friction_band,
+    identify_ekf,
+    identify_ekf_ensemble,
+    identify_output_error,
+    predict,
+    prefit,
+    score_simulation,
+    update,
+)
+from .models import (
     FRICTIONS,
+    ArmModel,
     CoulombFriction,
     Friction,
     OddTanhFriction,
     PolytopicFriction,
     StribeckFriction,
     make_friction,
+    simulate,
 )
-from .models.simulate import simulate
-from .runs.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from .runs.config import Config
-from .runs.export import export_model
 from .version import __version__
+
+# The runs layer (config files, checkpoints, the export) sits above everything else and is
+# imported only by the CLI; the public face reaches these few names lazily, on first use.
+_FROM_RUNS = {
+    "Config": "config",
+    "load_checkpoint": "checkpoint",
+    "read_checkpoint": "checkpoint",
+    "save_checkpoint": "checkpoint",
+    "export_model": "export",
+}
+
+
+def __getattr__(name: str):  # type: ignore[no-untyped-def]
+    if name in _FROM_RUNS:
+        import importlib
+
+        value = getattr(importlib.import_module(f".runs.{_FROM_RUNS[name]}", __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'torchfric' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_FROM_RUNS))
+
 
 __all__ = [
     "ArmModel",
+    "Callback",
     "Config",
     "CoulombFriction",
     "DivergenceError",

@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+__all__ = [
+    "SHOW_LIMIT",
+    "DivergenceError",
+    "RunInterrupted",
+    "TorchfricError",
+    "shorten",
+]
+
 SHOW_LIMIT = 200
 """At most this many characters of a bad value (or a library's message) are echoed in an error."""
 

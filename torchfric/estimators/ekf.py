@@ -20,25 +20,24 @@ innovation squared (NIS) and the Gaussian log-likelihood are returned as diagnos
 
 The per-sample functions are pure functions of tensors (`predict`, `update`, `step`); the pass
 loop (`run_pass`) and the iterative off-line identification (`identify_ekf`, in
-`identify.py`) are thin layers around them.
+`identify.py`) are thin layers around them. Compiling the step (`make_step` with ``compile``)
+is `torchfric.accel`'s: this module only hands it the plain per-sample function.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
-from torch.func import grad, jacrev
+from torch.func import grad
 
+from ..accel import CHUNK, Step, chunk_options, compile_step, fused_matmul, iter_chunks
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from ..models.simulate import rk4_step
 
 __all__ = [
     "EKFState",
@@ -47,23 +46,17 @@ __all__ = [
     "measurement_matrix",
     "make_propagator",
     "make_step",
-    "fused_matmul",
     "matmul_for",
-    "Step",
-    "CHUNK",
-    "pad_rows",
-    "iter_chunks",
-    "make_chunk",
-    "chunk_options",
-    "compile_with_fallback",
     "StepFn",
     "MatMul",
-    "make_reference_flow",
+    "Propagator",
     "stage_jacobians",
     "predict",
     "update",
     "step",
+    "healthy",
     "PassStats",
+    "FilterFailure",
     "run_pass",
 ]
 
@@ -88,14 +81,6 @@ class Innovation(NamedTuple):
     S: Tensor
     nis: Tensor
     loglik: Tensor
-
-
-def fused_matmul(A: Tensor, B: Tensor) -> Tensor:
-    """``A @ B`` for the filter's small matrices, written as a broadcast product and a sum.
-
-    Same product as `torch.matmul`; the form lets Inductor fuse it into the step's one C++
-    kernel instead of calling BLAS per product (each call costs microseconds for 10 × 10)."""
-    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
 
 
 def _cholesky(S: Tensor) -> list[list[Tensor]]:
@@ -187,7 +172,8 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
     `stage_jacobians`) by the RK4 recursion of the variational equation ``Φ̇ = F Φ``:
     ``D_1 = Φ, K_i = F_i^x D_i + F_i^θ E, D_2 = Φ + h K_1/3, D_3 = Φ + h (K_2 − K_1/3),
     D_4 = Φ + h (K_1 − K_2 + K_3), Φ ← Φ + h (K_1 + 3K_2 + 3K_3 + K_4)/8`` with ``E = ∂θ/∂z``.
-    `make_reference_flow` gives the same Φ by `torch.func.jacrev` through the whole map.
+    The tests' reference (`make_reference_flow` in tests/ekf_reference.py) gives the same Φ by
+    `torch.func.jacrev` through the whole map.
     `mm` is the matrix product (default `matmul_for(n)`); the returned function carries it as
     `.mm` for `make_step`.
     """
@@ -221,24 +207,6 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]
-    return propagate
-
-
-def make_reference_flow(model: ArmModel, substeps: int) -> Propagator:
-    """Reference for tests: the same RK4 map, Φ_x by `torch.func.jacrev` through all stages."""
-
-    def flow(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        x, theta = z[:2], z[2:]
-        fric, arm = model.split(theta)
-        h = dt / substeps
-        for _ in range(substeps):
-            x = rk4_step(model, x, u, h, fric, arm)
-        return x, x
-
-    def propagate(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        jac, x_next = jacrev(flow, has_aux=True)(z, u, dt)
-        return x_next, jac
-
     return propagate
 
 
@@ -313,38 +281,6 @@ def step(
 
 StepFn = Callable[..., tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]
 
-# Samples per compiled call of `Step.chunk`: large enough that the per-call cost (guards,
-# argument handling) is spread thin, small enough that padding the last chunk of a pass costs
-# little. One size for every data set, so a process compiles the chunk once per model.
-CHUNK = 1000
-
-
-class Step:
-    """The per-sample EKF step and, when compiled, a scan of it over `size` samples at a time.
-
-    Calling a `Step` runs one sample: ``step(x, P, u_prev, y, dt, Q, H, R, bound) ->
-    (x⁺, P⁺, e, nis, loglik, ok)``; `ok` is the `healthy` flag. `eager` is the plain function.
-    `chunk`, when set (compiled steps), filters `size` samples in one call (`make_chunk`):
-    ``chunk((x, P), (u (C,), y (C, m)), valid (C,), (dt, Q, H, R, bound)) -> ((x, P),
-    (e (C, m), nis (C,), loglik (C,), ok (C,)))``; padding samples (``valid = False``) leave the
-    belief unchanged. `run_pass` uses `chunk` when it is there.
-    """
-
-    def __init__(
-        self,
-        eager: StepFn,
-        fast: StepFn | None = None,
-        chunk: Callable | None = None,
-        size: int = 0,
-    ) -> None:
-        self.eager = eager
-        self.fast = fast or eager
-        self.chunk = chunk
-        self.size = size
-
-    def __call__(self, *args: Tensor):  # type: ignore[no-untyped-def]
-        return self.fast(*args)
-
 
 def make_step(
     flow: Propagator,
@@ -357,13 +293,14 @@ def make_step(
     """The per-sample step as a function of tensors only, optionally compiled.
 
     The model is captured in `flow`. With `compile`, the step is also compiled as a loop over
-    `chunk` samples (`torch._higher_order_ops.scan` under `torch.compile`, Inductor with its C++
-    wrapper, so the loop over samples runs in C++ and the whole step is one fused kernel). It
-    compiles on the first call, once per process and model; if compilation fails for any
-    reason the eager function is used from then on — same arithmetic. `mm` is the matrix
-    product of predict and update (default: the one `flow` was made with). With `native`
-    (the default) the chunk is first tried as generated C (`make_chunk`), the fastest path;
-    ``native=False`` keeps the Inductor scan (benchmarks compare the two).
+    `chunk` samples (`torchfric.accel.compile_step`: `torch._higher_order_ops.scan` under
+    `torch.compile`, Inductor with its C++ wrapper, so the loop over samples runs in C++ and
+    the whole step is one fused kernel). It compiles on the first call, once per process and
+    model; if compilation fails for any reason the eager function is used from then on — same
+    arithmetic. `mm` is the matrix product of predict and update (default: the one `flow` was
+    made with). With `native` (the default) the chunk is first tried as generated C
+    (`torchfric.accel.make_chunk`), the fastest path; ``native=False`` keeps the Inductor scan
+    (benchmarks compare the two).
     """
     mm = mm or getattr(flow, "mm", fused_matmul)
 
@@ -383,181 +320,8 @@ def make_step(
 
     if not compile:
         return Step(eager)
-
-    def one(x, P, u, y, *consts):  # type: ignore[no-untyped-def]
-        x1, P1, *diagnostics = eager(x, P, u, y, *consts)
-        return (x1, P1), tuple(diagnostics)
-
-    return Step(
-        eager,
-        compile_with_fallback(eager),
-        make_chunk(one, options=chunk_options(mm), native=native),
-        chunk,
-    )
-
-
-def chunk_options(mm: MatMul) -> dict:
-    """Inductor options for a compiled chunk of steps that use the matrix product `mm`.
-
-    Always the C++ wrapper (the loop over samples in C++). With `fused_matmul` also scalar code
-    (``cpp.simdlen = 1``): the fused step's loops run over 2–20 elements, where SIMD tails cost
-    more than they save — tanh(3), one filter: 36 k against 31 k steps/s; an ensemble of 256
-    (vmapped, so still the same short loops per member): 272 k against 155 k filter-steps/s.
-    """
-    options: dict = {"cpp_wrapper": True}
-    if mm is fused_matmul:
-        options["cpp.simdlen"] = 1
-    return options
-
-
-def make_chunk(
-    fn: Callable,
-    *,
-    options: dict | None = None,
-    native: bool = False,
-    members: bool = False,
-    member_consts: tuple[bool, ...] = (),
-) -> Callable:
-    """`fn` applied along chunks of samples as one compiled call, with an eager fallback.
-
-    ``fn(*carry, *x, *consts) -> (carry', outs)`` is one sample: `carry` a tuple of tensors
-    threaded from sample to sample, `x` the sample's slices, `consts` the same every sample,
-    `outs` a tuple of per-sample tensors. The returned ``chunk(carry, xs, valid, consts) ->
-    (carry, outs)`` takes `xs` with a leading sample axis C and returns each of `outs` stacked
-    along C; a sample with ``valid = False`` (padding) leaves the carry as it was (its `outs`
-    are computed but meaningless). Compiled as `torch._higher_order_ops.scan` under
-    `torch.compile` with Inductor `options`, through `compile_with_fallback`.
-
-    With `native`, the chunk is first tried as generated C (`torchfric.native`: the traced
-    step as straight-line scalar code, 20-40x faster than the Inductor scan for the filter);
-    when that path cannot translate `fn` it falls back to the Inductor scan, and that to the
-    eager loop. `members` and `member_consts` are `make_native_chunk`'s (for ensembles: `fn`
-    is then the batched step, which the native path traces for one member; the Inductor
-    and eager paths call it on the whole batch). The returned function's `.path` says which
-    path ran last: "native", "inductor" or "eager".
-    """
-
-    def traced(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
-        from torch._higher_order_ops import scan
-
-        def body(c, inp):  # type: ignore[no-untyped-def]
-            *x, v = inp
-            # The scan's body may not alias its inputs: the constants enter as fresh copies.
-            new, outs = fn(*c, *x, *(k.clone() for k in consts))
-            new = tuple(torch.where(v, a, b) for a, b in zip(new, c, strict=True))
-            # `v` is always an output: scan needs one even when `fn` has none.
-            return new, (*(o.clone() for o in outs), v.clone())
-
-        c, outs = scan(body, tuple(carry), (*xs, valid))
-        return c, tuple(outs[:-1])
-
-    def loop(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
-        carry, collected = tuple(carry), []
-        for *x, v in zip(*xs, valid, strict=True):
-            new, outs = fn(*carry, *x, *consts)
-            if bool(v):
-                carry = tuple(new)
-            collected.append(outs)
-        return carry, tuple(torch.stack(o) for o in zip(*collected, strict=True))
-
-    inductor = compile_with_fallback(loop, traced, options=options)
-    if not native:
-        return _tagged(inductor)
-    from ..accel.native import NativeUnavailable, make_native_chunk
-
-    generated = make_native_chunk(fn, members=members, member_consts=member_consts)
-    reasons: list[str] = []
-
-    def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
-        try:
-            out = generated(carry, xs, valid, consts)
-            chunk.path = "native"  # type: ignore[attr-defined]
-            return out
-        except NativeUnavailable as exc:  # this shape (remembered per shape): the next path
-            if str(exc) not in reasons:
-                reasons.append(str(exc))
-        out = inductor(carry, xs, valid, consts)
-        chunk.path = _path_of(inductor)  # type: ignore[attr-defined]
-        return out
-
-    chunk.path = None  # type: ignore[attr-defined]
-    chunk.why_not_native = reasons  # type: ignore[attr-defined]
-    return chunk
-
-
-def _path_of(fast: Callable) -> str | None:
-    """"inductor" or "eager" for a `compile_with_fallback` function once it has run."""
-    chosen = fast.chosen  # type: ignore[attr-defined]
-    if not chosen:
-        return None
-    return "eager" if chosen[0] is fast.eager else "inductor"  # type: ignore[attr-defined]
-
-
-def _tagged(fast: Callable) -> Callable:
-    """`fast` with a `.path` attribute that reads which path it took (see `make_chunk`)."""
-
-    def chunk(*args):  # type: ignore[no-untyped-def]
-        out = fast(*args)
-        chunk.path = _path_of(fast)  # type: ignore[attr-defined]
-        return out
-
-    chunk.path = None  # type: ignore[attr-defined]
-    chunk.chosen = fast.chosen  # type: ignore[attr-defined]
-    chunk.eager = fast.eager  # type: ignore[attr-defined]
-    return chunk
-
-
-@contextlib.contextmanager
-def _unlimited_recompiles() -> Iterator[None]:
-    """Lift dynamo's per-code-object recompile limit while one of our compiled calls runs.
-
-    Dynamo keeps its compiled entries on the *code object* and allows at most
-    ``torch._dynamo.config.recompile_limit`` (8) per code object. Every step, ensemble and rk4
-    chunk is the same closure code (`make_chunk`'s) with other captured models and shapes, so
-    the ninth compiled model in a process used to fall back to the eager loop (measured: an
-    ensemble of 64 at 10 k instead of 200 k filter-steps/s in `benchmarks/ekf_speed.py`).
-    Entries stay shared, so a step re-made for the same model still finds its compiled code.
-    The user's own compiled code keeps the limit they set."""
-    cfg = torch._dynamo.config
-    saved = cfg.recompile_limit, cfg.accumulated_recompile_limit
-    cfg.recompile_limit = cfg.accumulated_recompile_limit = 1 << 30
-    try:
-        yield
-    finally:
-        cfg.recompile_limit, cfg.accumulated_recompile_limit = saved
-
-
-def compile_with_fallback(
-    eager: Callable, traced: Callable | None = None, *, options: dict | None = None
-) -> Callable:
-    """`traced` (default: `eager`) through `torch.compile` (Inductor, full graph, static
-    shapes, `options`), compiled on the first call; if compilation fails for any reason `eager`
-    is used from then on — same arithmetic. The returned function carries `.eager` and
-    `.chosen` (the function in use)."""
-    compiled_fn = torch.compile(traced or eager, dynamic=False, fullgraph=True, options=options)
-    chosen: list[Callable] = []
-
-    def compiled(*args: Tensor):  # type: ignore[no-untyped-def]
-        with _unlimited_recompiles():  # (a new shape later recompiles under the same rule)
-            return compiled_fn(*args)
-
-    def fast(*args: Tensor):  # type: ignore[no-untyped-def]
-        if chosen:
-            return chosen[0](*args)
-        try:
-            with warnings.catch_warnings():
-                # Inductor's own deprecation notices are not the user's business.
-                warnings.simplefilter("ignore", FutureWarning)
-                out = compiled(*args)
-            chosen.append(compiled)
-        except Exception:  # noqa: BLE001 - any compiler failure means: use the eager step
-            out = eager(*args)
-            chosen.append(eager)
-        return out
-
-    fast.eager = eager  # type: ignore[attr-defined]
-    fast.chosen = chosen  # type: ignore[attr-defined]
-    return fast
+    # carry: (x, P); per-sample outputs: (e, nis, loglik, ok)
+    return compile_step(eager, carry=2, size=chunk, options=chunk_options(mm), native=native)
 
 
 @dataclass
@@ -685,25 +449,6 @@ def _failure_reason(
 ) -> str | None:
     """`_check`'s message for one step's outputs (None when every check passes)."""
     return _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound)
-
-
-def pad_rows(a: Tensor, size: int) -> Tensor:
-    """`a` extended to `size` rows by repeating its last row (padding the scan never uses)."""
-    if a.shape[0] == size:
-        return a
-    return torch.cat([a, a[-1:].expand(size - a.shape[0], *a.shape[1:])])
-
-
-def iter_chunks(
-    xs: tuple[Tensor, ...], size: int
-) -> Iterator[tuple[int, int, tuple[Tensor, ...], Tensor]]:
-    """The inputs of successive `make_chunk` calls along the leading axis of `xs`:
-    ``(start, m, padded xs (size rows each), valid (size,))`` with the last chunk's `m` real
-    rows padded by `pad_rows` and marked invalid."""
-    total = xs[0].shape[0]
-    for i in range(0, total, size):
-        m = min(size, total - i)
-        yield i, m, tuple(pad_rows(a[i : i + m], size) for a in xs), torch.arange(size) < m
 
 
 def _replay_failure(

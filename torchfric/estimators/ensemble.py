@@ -13,18 +13,18 @@ passes, per-experiment state reset, per-member early stop on the θ tolerance an
 rollback of a pass that lowers its innovation log-likelihood. A member whose belief becomes
 unhealthy (NaN, negative variance, θ out of the box) is frozen at its last good pass and marked
 diverged; the others carry on. No per-sample host synchronisation: health flags are folded into
-masks on the device and read once per stretch.
+masks on the device and read once per stretch. (The pass loop is `torchfric.estimators.passes`.)
 
 After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇
 FIT of an open-loop simulation (all members simulated as one batch), averaged over the
 validation experiments and, with equal weight, over the training experiments (the training
 experiments alone when no validation data are given) — and the spread of all members' results
-is reported: a cheap measure of how trustworthy the identification is.
+is reported: a cheap measure of how trustworthy the identification is
+(`torchfric.estimators.selection`).
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from collections.abc import Sequence
@@ -35,31 +35,25 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
+from ..accel import CHUNK, Step, chunk_options, compile_with_fallback, iter_chunks, make_chunk
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from ..models.simulate import auto_substeps, simulate
-from .ekf import (
-    CHUNK,
-    EKFState,
-    MatMul,
-    Step,
-    StepFn,
-    chunk_options,
-    compile_with_fallback,
-    iter_chunks,
-    make_chunk,
-    make_propagator,
-    make_step,
-    matmul_for,
-    update,
-)
-from .identify import (
+from .ekf import EKFState, MatMul, StepFn, make_propagator, make_step, matmul_for, update
+from .observers import Callback, EnsembleCallback
+from .passes import (
+    DIVERGED,
     EKFResult,
+    Filtering,
+    PassLedger,
     PassRecord,
-    _measurements,
+    PassSums,
+    experiment_list,
+    initial_belief,
+    measured_data,
+    run_passes,
 )
-from .observers import EnsembleCallback
+from .selection import select_by_fit, simulate_members
 from .settings import EKFTuning, EnsembleSpec
 
 __all__ = [
@@ -74,8 +68,6 @@ __all__ = [
     "identify_ekf_ensemble",
     "simulate_members",
 ]
-
-RUNNING, CONVERGED, ROLLED_BACK, DIVERGED = "running", "converged", "rolled_back", "diverged"
 
 
 def random_thetas(
@@ -179,18 +171,8 @@ def make_masked_step(
         R: Tensor,
         bound: Tensor,
     ):  # type: ignore[no-untyped-def]
-        x1, P1, e, nis, ll, ok = batched(x, P, u, y, dt, Q, H, R, bound)
-        fail_at = torch.where(good & ~ok & (fail_at < 0), j, fail_at)
-        good = good & ok
-        return (
-            torch.where(good[:, None], x1, x),
-            torch.where(good[:, None, None], P1, P),
-            good,
-            fail_at,
-            sum_e2 + torch.where(good[:, None], e * e, 0.0),
-            sum_nis + torch.where(good, nis, 0.0),
-            loglik + torch.where(good, ll, 0.0),
-        )
+        carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
+        return _keep_good(carry, j, *batched(x, P, u, y, dt, Q, H, R, bound))
 
     if not compile:
         return Step(masked)
@@ -205,61 +187,50 @@ def make_masked_step(
     return Step(masked, compile_with_fallback(masked), scan, chunk)
 
 
-def _batched_update(x: Tensor, P: Tensor, y: Tensor, H: Tensor, R: Tensor):  # type: ignore[no-untyped-def]
+def _keep_good(
+    carry: tuple[Tensor, ...],
+    j: Tensor | int,
+    x1: Tensor,
+    P1: Tensor,
+    e: Tensor,
+    nis: Tensor,
+    ll: Tensor,
+    ok: Tensor,
+) -> tuple[Tensor, ...]:
+    """The masked step's bookkeeping: members still `good` whose step is healthy (`ok`) take
+    ``x1, P1`` and add the diagnostics; a member that is not `ok` keeps its last belief,
+    records sample `j` in `fail_at` (if not already failed) and drops out of `good`."""
+    x, P, good, fail_at, sum_e2, sum_nis, loglik = carry
+    fail_at = torch.where(good & ~ok & (fail_at < 0), j, fail_at)
+    good = good & ok
+    return (
+        torch.where(good[:, None], x1, x),
+        torch.where(good[:, None, None], P1, P),
+        good,
+        fail_at,
+        sum_e2 + torch.where(good[:, None], e * e, 0.0),
+        sum_nis + torch.where(good, nis, 0.0),
+        loglik + torch.where(good, ll, 0.0),
+    )
+
+
+def _first_sample(carry: tuple[Tensor, ...], y0: Tensor, f: Filtering) -> tuple[Tensor, ...]:
+    """Sample 0 of an experiment: the measurement update alone (nothing to predict from), for
+    every member, with the bookkeeping of the masked step."""
+    x, P = carry[0], carry[1]
+
     def one(x1: Tensor, P1: Tensor, R1: Tensor):  # type: ignore[no-untyped-def]
-        state, inn = update(EKFState(x1, P1), y, H, R1)
+        state, inn = update(EKFState(x1, P1), y0, f.H, R1)
         return state.x, state.P, inn.e, inn.nis, inn.loglik
 
-    return vmap(one)(x, P, R)
-
-
-@torch.no_grad()
-def simulate_members(
-    model: ArmModel,
-    thetas: Tensor,
-    exp: Experiment,
-    *,
-    max_substeps: int = 64,
-    engine: str = "odeint",
-) -> Tensor:
-    """Open-loop simulations `(N, K, 2)` of `exp` from its measured initial state for K θ's.
-
-    Each member is simulated with the RK4 sub-step count it needs (`auto_substeps`), so one
-    stiff member does not make every other member's simulation slow. A member that would need
-    more than `max_substeps` is not simulated: its rows are NaN (scored as a failed run).
-    `engine` as in `simulate`: with "compiled" every sub-step count runs the whole batch of K
-    (one compiled shape, so one compile per model structure) and keeps its own members' rows;
-    odeint batches only the members that share a count. The same RK4 steps either way (the
-    compiled engine equals odeint to 1e-12, tested).
-    """
-    if exp.qdot is None:
-        raise TorchfricError(f"experiment {exp.name!r} has no velocity to score against")
-    K = thetas.shape[0]
-    need = [
-        auto_substeps(model, exp.dt, theta=thetas[j], max_substeps=max_substeps + 1)
-        for j in range(K)
-    ]
-    out = torch.full((exp.n, K, 2), float("nan"), dtype=torch.float64)
-    x0 = torch.stack([exp.q[0], exp.qdot[0]]).to(torch.float64)
-    u = exp.u.to(torch.float64)
-    for steps in sorted(set(need)):
-        if steps > max_substeps:
-            continue
-        idx = [j for j in range(K) if need[j] == steps]
-        run = list(range(K)) if engine == "compiled" else idx
-        B = len(run)
-        sim = simulate(
-            model, exp.t, u[:, None].expand(-1, B), x0.expand(B, 2), theta=thetas[run],
-            substeps=steps, engine=engine,
-        )  # fmt: skip
-        out[:, idx] = sim[:, [run.index(j) for j in idx]]
-    return out
-
-
-def _fit(y: Tensor, y_hat: Tensor) -> Tensor:
-    """FIT % per member: `y (N,)`, `y_hat (N, K)` → `(K,)`; NaN where the simulation failed."""
-    den = (y - y.mean()).norm()
-    return 100.0 * (1.0 - (y[:, None] - y_hat).norm(dim=0) / den)
+    x1, P1, e, nis, ll = vmap(one)(x, P, f.R)
+    ok = (
+        torch.isfinite(nis)
+        & torch.isfinite(x1).all(1)
+        & torch.isfinite(P1).flatten(1).all(1)
+        & (x1[:, 2:].abs() <= f.theta_bound).all(1)
+    )
+    return _keep_good(carry, 0, x1, P1, e, nis, ll, ok)
 
 
 @dataclass
@@ -332,7 +303,7 @@ def identify_ekf_ensemble(
     members: tuple[Tensor, Tensor, Tensor] | None = None,
     validation: Sequence[Experiment] = (),
     max_substeps: int = 64,
-    callback: EnsembleCallback | None = None,
+    callback: Callback | None = None,
     start: dict[str, Any] | None = None,
     progress_every: int = 2000,
 ) -> EnsembleResult:
@@ -348,8 +319,8 @@ def identify_ekf_ensemble(
             the training experiments' FIT (without validation: the training FIT alone).
         max_substeps: members too stiff to simulate with this many RK4 sub-steps per sample
             are scored as failed runs in the selection.
-        callback: `EnsembleCallback`.
-        start: a state passed to `EnsembleCallback.on_ensemble_pass_end`: continue after that
+        callback: a `Callback` (`EnsembleCallback`) for progress and per-pass snapshots.
+        start: a state passed to `Callback.on_ensemble_pass_end`: continue after that
             pass (members, tuning scales and histories come from it; the result equals an
             uninterrupted run's).
 
@@ -361,245 +332,166 @@ def identify_ekf_ensemble(
     """
     t_start = time.perf_counter()
     tuning = tuning or EKFTuning()
-    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
-    if not exps:
-        raise TorchfricError("identify_ekf_ensemble needs at least one experiment")
     k = model.num_parameters
-    tuning.check(k)
-    if start is not None:
-        members = (start["members_theta"], start["q_scale"], start["r_scale"])
-    if members is None:
-        spec = spec or EnsembleSpec()
-        thetas, q_scale, r_scale = member_grid(model, model.get_theta(), spec)
-    else:
-        thetas, q_scale, r_scale = (torch.as_tensor(m, dtype=torch.float64) for m in members)
-        if thetas.ndim != 2 or thetas.shape[1] != k:
-            raise TorchfricError(f"ensemble θ must have shape (K, {k}), got {tuple(thetas.shape)}")
-        if q_scale.shape != (thetas.shape[0],) or r_scale.shape != (thetas.shape[0],):
-            raise TorchfricError("ensemble q/r scales need one value per member")
-    K = thetas.shape[0]
-    callback = callback or EnsembleCallback()
-    n = 2 + k
-    f64 = torch.float64
+    exps = experiment_list(experiments, tuning, k, "identify_ekf_ensemble")
+    thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
+    callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(k)
-    Qk = Q * q_scale[:, None, None]
-    Rk = R * r_scale[:, None, None]
+    Qk, Rk = Q * q_scale[:, None, None], R * r_scale[:, None, None]
     P_theta = tuning.initial_P_theta(model, thetas)
-    theta = thetas.clone()
-    bound = torch.tensor(tuning.theta_bound, dtype=f64)
     step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
-    data = [(e, e.u.to(f64), _measurements(e, tuning.measure)) for e in exps]
+    data = measured_data(exps, tuning.measure)
     total = sum(e.n for e in exps)
-
-    status = [RUNNING] * K
-    reasons = [""] * K
-    histories: list[list[PassRecord]] = [[] for _ in range(K)]
-    best_ll = torch.full((K,), -math.inf, dtype=f64)
-    best_theta, best_P = theta.clone(), P_theta.clone()
-    filter_steps = 0
-    first_pass = 1
+    f = Filtering(
+        data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, progress_every, total
+    )
     if start is not None:
-        first_pass = int(start["pass"]) + 1
-        theta, P_theta = start["thetas"].clone(), start["P_thetas"].clone()
-        best_theta, best_P = start["best_theta"].clone(), start["best_P"].clone()
-        best_ll = start["best_loglik"].clone()
-        status, reasons = list(start["status"]), list(start["reasons"])
-        histories = [[PassRecord(**r) for r in h] for h in start["histories"]]
-        filter_steps = int(start["filter_steps"])
+        ledger = PassLedger.from_state(model, tuning, start)
+    else:
+        ledger = PassLedger(model, tuning, thetas.clone(), P_theta)
 
-    def snapshot(p: int) -> dict[str, Any]:
-        return {
+    def on_pass_end(p: int, records: list[PassRecord | None]) -> bool | None:
+        state = {
             "method": "ekf_ensemble",
             "pass": p,
             "members_theta": thetas.clone(),
             "q_scale": q_scale.clone(),
             "r_scale": r_scale.clone(),
-            "thetas": theta.clone(),
-            "P_thetas": P_theta.clone(),
-            "best_theta": best_theta.clone(),
-            "best_P": best_P.clone(),
-            "best_loglik": best_ll.clone(),
-            "status": list(status),
-            "reasons": list(reasons),
-            "histories": [[r.to_dict() for r in h] for h in histories],
-            "filter_steps": filter_steps,
         }
+        return callback.on_ensemble_pass_end(p, {**state, **ledger.state()})
 
-    for p in range(first_pass, tuning.passes + 1):
-        if all(s != RUNNING for s in status):
-            break
-        t0 = time.perf_counter()
-        theta_old, P_old = theta.clone(), P_theta.clone()
-        good = torch.tensor([s == RUNNING for s in status])
-        fail_at = torch.full((K,), -1, dtype=torch.long)
-        sum_e2 = torch.zeros(K, H.shape[0], dtype=f64)
-        sum_nis = torch.zeros(K, dtype=f64)
-        loglik = torch.zeros(K, dtype=f64)
-        samples = 0
-        fail_exp = [""] * K
-        for exp, u, y in data:
-            x0 = torch.stack(
-                [exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())]
-            )
-            x = torch.cat([x0.to(f64).expand(K, 2), theta], dim=1)
-            P = torch.zeros(K, n, n, dtype=f64)
-            P[:, :2, :2] = P0_xx
-            P[:, 2:, 2:] = P_theta
-            dt = torch.tensor(exp.dt, dtype=f64)
-            was_good = good.clone()
-            x1, P1, e, nis, ll = _batched_update(x, P, y[0], H, Rk)
-            ok = (
-                torch.isfinite(nis)
-                & torch.isfinite(x1).all(1)
-                & torch.isfinite(P1).flatten(1).all(1)
-                & (x1[:, 2:].abs() <= bound).all(1)
-            )
-            x = torch.where(ok[:, None], x1, x)
-            P = torch.where(ok[:, None, None], P1, P)
-            fail_at = torch.where(good & ~ok & (fail_at < 0), 0, fail_at)
-            good = good & ok
-            sum_e2 += torch.where(good[:, None], e * e, 0.0)
-            sum_nis += torch.where(good, nis, 0.0)
-            loglik += torch.where(good, ll, 0.0)
-            index = torch.arange(exp.n)
-            carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
-            if step_fn.chunk is not None:
-                # sample j = 1 + i is driven by u[j − 1] and measured by y[j]
-                for i, m, xs, valid in iter_chunks((index[1:], u[:-1], y[1:]), step_fn.size):
-                    carry, _ = step_fn.chunk(carry, xs, valid, (dt, Qk, H, Rk, bound))
-                    callback.on_progress(p, samples + 1 + i + m, total)
-            else:
-                for j in range(1, exp.n):
-                    carry = step_fn(*carry, index[j], u[j - 1], y[j], dt, Qk, H, Rk, bound)
-                    if j % progress_every == 0:
-                        callback.on_progress(p, samples + j, total)
-            x, P, good, fail_at, sum_e2, sum_nis, loglik = carry
-            for i in torch.nonzero(was_good & ~good).flatten().tolist():
-                fail_exp[i] = f"pass {p}, experiment {exp.name!r}, sample {int(fail_at[i])}"
-            samples += exp.n
-            callback.on_progress(p, samples, total)
-            theta = torch.where(good[:, None], x[:, 2:], theta)
-            P_theta = torch.where(good[:, None, None], P[:, 2:, 2:], P_theta)
-        filter_steps += K * samples
-        seconds = time.perf_counter() - t0
-        rel = (theta - theta_old).norm(dim=1) / theta_old.norm(dim=1).clamp_min(1e-12)
-        for i in range(K):
-            if status[i] != RUNNING:
-                theta[i], P_theta[i] = best_theta[i], best_P[i]
-                continue
-            if not bool(good[i]):
-                status[i] = DIVERGED
-                reasons[i] = (
-                    f"diverged in {fail_exp[i]}: the belief became non-finite, non-PSD or θ left "
-                    f"the box |θ| <= {tuning.theta_bound:g}"
-                )
-                theta[i], P_theta[i] = theta_old[i], P_old[i]
-                continue
-            record = PassRecord(
-                index=p,
-                theta=theta[i].tolist(),
-                parameters=dict(
-                    zip(model.theta_names, model.to_physical(theta[i]).tolist(), strict=True)
-                ),
-                trace_P=float(torch.diagonal(P[i]).sum()),
-                trace_P_theta=float(torch.diagonal(P_theta[i]).sum()),
-                innovation_rms=(sum_e2[i] / samples).sqrt().tolist(),
-                nis=float(sum_nis[i]) / samples,
-                loglik=float(loglik[i]),
-                rel_change=float(rel[i]),
-                seconds=seconds,
-                samples=samples,
-            )
-            ll_best = float(best_ll[i])
-            if tuning.rollback and histories[i] and record.loglik < ll_best - 1e-6 * abs(ll_best):
-                record.rolled_back = True
-                theta[i], P_theta[i] = best_theta[i], best_P[i]
-                status[i] = ROLLED_BACK
-            else:
-                best_ll[i] = record.loglik
-                best_theta[i], best_P[i] = theta[i].clone(), P_theta[i].clone()
-                if tuning.tolerance > 0 and record.rel_change < tuning.tolerance:
-                    status[i] = CONVERGED
-            histories[i].append(record)
-        if callback.on_ensemble_pass_end(p, snapshot(p)) is False:
-            break
+    run_passes(ledger, tuning.passes, lambda p: _filter_members(p, ledger, f), on_pass_end)
+    engine = "compiled" if tuning.compile else "odeint"
+    choice = (validation, max_substeps, engine)
+    return _finish(model, exps, ledger, q_scale, r_scale, choice, t_start)
 
-    alive = [i for i in range(K) if status[i] != DIVERGED or histories[i]]
+
+def _member_starts(
+    model: ArmModel,
+    spec: EnsembleSpec | None,
+    members: tuple[Tensor, Tensor, Tensor] | None,
+    start: dict[str, Any] | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The members' ``(θ (K, k), q_scale (K,), r_scale (K,))``: from the `start` snapshot, else
+    `members`, else the grid of `spec`."""
+    if start is not None:
+        members = (start["members_theta"], start["q_scale"], start["r_scale"])
+    if members is None:
+        return member_grid(model, model.get_theta(), spec or EnsembleSpec())
+    thetas, q_scale, r_scale = (torch.as_tensor(m, dtype=torch.float64) for m in members)
+    k = model.num_parameters
+    if thetas.ndim != 2 or thetas.shape[1] != k:
+        raise TorchfricError(f"ensemble θ must have shape (K, {k}), got {tuple(thetas.shape)}")
+    if q_scale.shape != (thetas.shape[0],) or r_scale.shape != (thetas.shape[0],):
+        raise TorchfricError("ensemble q/r scales need one value per member")
+    return thetas, q_scale, r_scale
+
+
+def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
+    """Pass `p` of every running member over every experiment, as one batch.
+
+    No per-sample host synchronisation: health flags are folded into masks on the device and
+    read once per experiment. A member that fails keeps its θ and ``P_θθ`` from before that
+    experiment and gets the reason (pass, experiment, sample) in `PassSums.failures`.
+    """
+    f64 = torch.float64
+    K = ledger.theta.shape[0]
+    theta, P_theta = ledger.theta, ledger.P_theta
+    good = ledger.running()
+    fail_at = torch.full((K,), -1, dtype=torch.long)
+    sums = [torch.zeros(K, f.H.shape[0], dtype=f64), torch.zeros(K, dtype=f64)]
+    sums.append(torch.zeros(K, dtype=f64))  # Σ e², Σ NIS, log-likelihood
+    samples, failures = 0, [""] * K
+    for exp, u, y in f.data:
+        x, P = initial_belief(exp, theta, P_theta, f.P0_xx)
+        was_good = good.clone()
+        carry = _first_sample((x, P, good, fail_at, *sums), y[0], f)
+        x, P, good, fail_at, *sums = _filter_rest(carry, exp, u, y, p, samples, f)
+        for i in torch.nonzero(was_good & ~good).flatten().tolist():
+            failures[i] = (
+                f"diverged in pass {p}, experiment {exp.name!r}, sample {int(fail_at[i])}: the "
+                "belief became non-finite, non-PSD or θ left the box "
+                f"|θ| <= {f.theta_bound:g}"
+            )
+        samples += exp.n
+        f.callback.on_progress(p, samples, f.total)
+        theta = torch.where(good[:, None], x[:, 2:], theta)
+        P_theta = torch.where(good[:, None, None], P[:, 2:, 2:], P_theta)
+    return PassSums(theta, P_theta, P, *sums, samples, failures)
+
+
+def _filter_rest(
+    carry: tuple[Tensor, ...], exp: Experiment, u: Tensor, y: Tensor, p: int, offset: int,
+    f: Filtering,
+) -> tuple[Tensor, ...]:  # fmt: skip
+    """Samples 1 … N−1 of `exp` through the masked step (compiled chunks when there are),
+    reporting progress."""
+    bound = torch.tensor(f.theta_bound, dtype=torch.float64)
+    consts = (torch.tensor(exp.dt, dtype=torch.float64), f.Q, f.H, f.R, bound)
+    index = torch.arange(exp.n)
+    if f.step_fn.chunk is not None:
+        # sample j = 1 + i is driven by u[j − 1] and measured by y[j]
+        for i, m, xs, valid in iter_chunks((index[1:], u[:-1], y[1:]), f.step_fn.size):
+            carry, _ = f.step_fn.chunk(carry, xs, valid, consts)
+            f.callback.on_progress(p, offset + 1 + i + m, f.total)
+    else:
+        for j in range(1, exp.n):
+            carry = f.step_fn(*carry, index[j], u[j - 1], y[j], *consts)
+            if j % f.every == 0:
+                f.callback.on_progress(p, offset + j, f.total)
+    return carry
+
+
+def _finish(
+    model: ArmModel,
+    exps: list[Experiment],
+    ledger: PassLedger,
+    q_scale: Tensor,
+    r_scale: Tensor,
+    choice: tuple[Sequence[Experiment], int, str],
+    t_start: float,
+) -> EnsembleResult:
+    """Keep the member with the best open-loop FIT (`select_by_fit`; `choice` is its
+    validation experiments, max_substeps and engine) and summarise every member."""
+    K = len(ledger.status)
+    alive = [i for i in range(K) if ledger.status[i] != DIVERGED or ledger.histories[i]]
     if not alive:
-        first = next((r for r in reasons if r), "every member diverged")
+        first = next((r for r in ledger.reasons if r), "every member diverged")
         raise TorchfricError(
             f"every one of the {K} ensemble members diverged (member 0: {first}). Fix: start "
             "from model.init = 'prefit', lower estimator.p0_theta or the ensemble spread"
         )
     # A member that diverged after good passes keeps its last good pass (like identify_ekf's
     # last_good); it stays eligible but is reported as diverged.
-    theta = torch.where(torch.tensor([s == DIVERGED for s in status])[:, None], best_theta, theta)
-    # Selection by open-loop simulation of every record there is: the mean FIT (q and q̇) on
-    # the validation files and the mean FIT on the training files, weighted equally (training
-    # files alone when there is no validation). The EKF never fits open-loop simulations, so
-    # the training files are a second check, not a fitted score; on the rig, validation alone
-    # kept a polytopic member 3 % off in inertia for one user tuning in nine, both kept a
-    # physical member for all nine (benchmarks/robustness.py, which shows each rule).
-    # Not by the innovation likelihood: members differ in R and Q, and the likelihood prefers the
-    # smallest R that the data allow, which on the rig is the member with the worst friction
-    # curve. The likelihood only decides when no member simulates.
-    scores = torch.full((K,), -math.inf, dtype=f64)
-    fits: list[dict[str, dict[str, float]]] = [{} for _ in range(K)]
-    engine = "compiled" if tuning.compile else "odeint"
-    idx = torch.tensor(alive)
-    # (training files without a velocity, e.g. measure = "position", cannot be simulated from
-    # their measured state and are left out)
-    groups = [g for g in (list(validation), [e for e in exps if e.qdot is not None]) if g]
-    total = torch.zeros(len(alive), dtype=f64)
-    for group in groups:
-        group_fit = torch.zeros(len(alive), dtype=f64)
-        for v in group:
-            sim = simulate_members(
-                model, theta[idx], v, max_substeps=max_substeps, engine=engine
-            )
-            fq, fv = _fit(v.q.to(f64), sim[..., 0]), _fit(v.qdot.to(f64), sim[..., 1])
-            group_fit += 0.5 * (fq + fv) / len(group)
-            for a, i in enumerate(alive):
-                fits[i][v.name] = {"fit_q": float(fq[a]), "fit_qdot": float(fv[a])}
-        total += group_fit / len(groups)
-    if groups:
-        scores[idx] = torch.nan_to_num(total, nan=-math.inf)
-    selected_by = "validation_and_train_fit" if validation else "train_fit"
-    if not bool(torch.isfinite(scores).any()):
-        for i in alive:
-            scores[i] = best_ll[i]
-        selected_by = "loglik"
+    theta = ledger.kept_theta()
+    validation, max_substeps, engine = choice
+    scores, fits, selected_by = select_by_fit(
+        model, theta, alive, exps, validation, ledger.best_ll, max_substeps=max_substeps,
+        engine=engine,
+    )  # fmt: skip
     best = int(torch.argmax(scores))
-    fitted = copy.deepcopy(model).set_theta(theta[best])
-    result = EKFResult(
-        fitted,
-        theta[best].clone(),
-        best_P[best].clone() if status[best] == DIVERGED else P_theta[best].clone(),
-        list(histories[best]),
-        status[best] == CONVERGED,
-    )
     summaries = [
         MemberSummary(
             index=i,
             q_scale=float(q_scale[i]),
             r_scale=float(r_scale[i]),
-            status=status[i],
-            passes=len(histories[i]),
-            loglik=float(best_ll[i]),
+            status=ledger.status[i],
+            passes=len(ledger.histories[i]),
+            loglik=float(ledger.best_ll[i]),
             inertia=float(model.split(theta[i])[1]["inertia"]),
             score=float(scores[i]),
             fits=fits[i],
-            reason=reasons[i],
+            reason=ledger.reasons[i],
         )
         for i in range(K)
     ]
     return EnsembleResult(
         best=best,
-        result=result,
+        result=ledger.result(best),
         thetas=theta,
-        P_thetas=P_theta,
+        P_thetas=ledger.P_theta,
         members=summaries,
         selected_by=selected_by,
         seconds=time.perf_counter() - t_start,
-        filter_steps=filter_steps,
+        filter_steps=ledger.filter_steps,
     )

@@ -14,6 +14,7 @@ from ..models.simulate import simulate
 
 __all__ = [
     "fit_percent",
+    "fit_percent_batch",
     "rms",
     "SimulationScore",
     "score_simulation",
@@ -27,10 +28,19 @@ def fit_percent(y: Tensor, y_hat: Tensor) -> float:
     """FIT % = 100 (1 − ‖y − ŷ‖ / ‖y − mean(y)‖); 100 is perfect, can be negative."""
     y = torch.as_tensor(y, dtype=torch.float64)
     y_hat = torch.as_tensor(y_hat, dtype=torch.float64)
-    den = float((y - y.mean()).norm())
-    if den == 0.0:
+    if float((y - y.mean()).norm()) == 0.0:
         raise TorchfricError("FIT is undefined for a constant signal (zero variance)")
-    return 100.0 * (1.0 - float((y - y_hat).norm()) / den)
+    return float(fit_percent_batch(y.reshape(-1), y_hat.reshape(-1, 1))[0])
+
+
+def fit_percent_batch(y: Tensor, y_hat: Tensor) -> Tensor:
+    """FIT % of K simulations of one signal at once: `y (N,)`, `y_hat (N, K)` → `(K,)`.
+
+    The formula of `fit_percent`, without its check: NaN where a simulation is NaN (a failed
+    run), and ±inf or NaN for a constant `y`.
+    """
+    den = (y - y.mean()).norm()
+    return 100.0 * (1.0 - (y[:, None] - y_hat).norm(dim=0) / den)
 
 
 def rms(y: Tensor, y_hat: Tensor) -> float:

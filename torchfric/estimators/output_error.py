@@ -33,6 +33,10 @@ Horizons:
 
 Gradients by backpropagation through the fixed-grid solver (default), or by the adjoint method
 (`torchdiffeq.odeint_adjoint`, memory independent of the horizon, about twice the time).
+Layout: `identify_output_error` checks the data (`shooting.training_data`), then `_Training` holds
+θ (and the window states δ), the optimiser, the history and the best epoch, and steps through the
+Adam epochs (`_Training.epoch`), the early stop (`_BestEpoch`) and the optional L-BFGS polish
+(`_Training.polish`). The data tensors, windows, rollouts and losses are in `shooting`.
 """
 
 from __future__ import annotations
@@ -44,22 +48,41 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
-from torchdiffeq import odeint_adjoint
 
 from ..data import Experiment
 from ..errors import DivergenceError, TorchfricError
 from ..models.arm import ArmModel
-from ..models.simulate import ZOHField, auto_substeps, sample_grid, simulate
 from .metrics import score_simulation
 from .observers import OECallback
 from .settings import OETuning
+from .shooting import (
+    METHOD,
+    ExperimentTensors,
+    cut_tiles,
+    draw_windows,
+    epoch_generator,
+    full_loss,
+    prepare,
+    scales,
+    shooting_loss,
+    solver_substeps,
+    training_data,
+    window_loss,
+)
 
 __all__ = ["OETuning", "EpochRecord", "OEResult", "OECallback", "identify_output_error"]
 
-_METHOD = "rk4"
+ValFit = dict[str, dict[str, float]]  # {validation name: {"fit_q", "fit_qdot"}}
+
+
+def _mean_fit(val_fit: ValFit | None) -> float | None:
+    """Mean over validation experiments of (FIT_q + FIT_q̇) / 2, or None when not evaluated."""
+    if not val_fit:
+        return None
+    vals = [0.5 * (v["fit_q"] + v["fit_qdot"]) for v in val_fit.values()]
+    return sum(vals) / len(vals)
 
 
 @dataclass
@@ -71,17 +94,14 @@ class EpochRecord:
     parameters: dict[str, float]  # physical values by name, after the step
     lr: float
     seconds: float
-    val_fit: dict[str, dict[str, float]] | None  # {name: {"fit_q", "fit_qdot"}} when evaluated
+    val_fit: ValFit | None  # {name: {"fit_q", "fit_qdot"}} when evaluated
     theta: list[float] = field(default_factory=list)  # estimation coordinates, after the step
     window: int = 0  # window length of this epoch (0 = full length)
 
     @property
     def val_score(self) -> float | None:
         """Mean over validation experiments of (FIT_q + FIT_q̇) / 2, or None."""
-        if not self.val_fit:
-            return None
-        vals = [0.5 * (v["fit_q"] + v["fit_qdot"]) for v in self.val_fit.values()]
-        return sum(vals) / len(vals)
+        return _mean_fit(self.val_fit)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -97,7 +117,9 @@ class OEResult:
     best_epoch: int = 0  # epoch whose θ is returned (0 = the initial guess)
     stopped_early: bool = False  # patience ran out or the callback asked to stop
     optimizer_state: dict[str, Any] | None = None  # Adam state after the last epoch (resume)
-    shooting: Tensor | None = None  # (tiles, 2) learned start offsets δ (learn_states), in units of s
+    shooting: Tensor | None = (
+        None  # (tiles, 2) learned start offsets δ (learn_states), in units of s
+    )
     initial_theta: Tensor | None = None  # θ at epoch 0, the early stop's baseline (resume)
 
     def initial_states(self, experiments: Experiment | Sequence[Experiment]) -> Tensor:
@@ -105,229 +127,20 @@ class OEResult:
         `experiments` (the training experiments, in training order)."""
         if self.shooting is None:
             raise TorchfricError("this result has no learned states (learn_states was off)")
-        data = _prepare([experiments] if isinstance(experiments, Experiment) else experiments, "x")
+        data = prepare([experiments] if isinstance(experiments, Experiment) else experiments, "x")
         window = self.history[-1].window if self.history else 0
-        tiles = _tiles(data, window)
+        tiles = cut_tiles(data, window)
         if len(tiles) != self.shooting.shape[0]:
             raise TorchfricError(
                 f"these experiments give {len(tiles)} tiles, the result learned "
                 f"{self.shooting.shape[0]}; pass the training experiments"
             )
         y0 = torch.stack([data[i].y[st] for i, st in tiles])
-        return y0 + _scales(data) * self.shooting
+        return y0 + scales(data) * self.shooting
 
     @property
     def epochs(self) -> int:
         return len(self.history)
-
-
-@dataclass
-class _Data:
-    """Training tensors of one experiment: `u (N,)`, measured `y (N, 2)` = [q, q̇]."""
-
-    t: Tensor
-    u: Tensor
-    y: Tensor
-    dt: float
-
-
-def _prepare(exps: Sequence[Experiment], what: str) -> list[_Data]:
-    out = []
-    for e in exps:
-        if not isinstance(e, Experiment):
-            raise TorchfricError(f"{what} must be Experiment objects, got {type(e).__name__}")
-        if e.qdot is None:
-            raise TorchfricError(
-                f"experiment {e.name!r} has no velocity, but output-error training needs q̇ for "
-                "the measured initial states and the q̇ loss; reconstruct it first "
-                "(Experiment.with_velocity())"
-            )
-        y = torch.stack([e.q, e.qdot], dim=-1).to(torch.float64)
-        out.append(_Data(e.t.to(torch.float64), e.u.to(torch.float64), y, e.dt))
-    return out
-
-
-def _scales(data: Sequence[_Data]) -> Tensor:
-    """`(2,)` pooled standard deviations of measured [q, q̇], each experiment about its mean."""
-    ss = sum(((d.y - d.y.mean(0)) ** 2).sum(0) for d in data)
-    n = sum(d.y.shape[0] for d in data)
-    s = (ss / n).sqrt()
-    if not bool((s > 0).all()):
-        raise TorchfricError(
-            f"the training data have a constant q or q̇ (std = {s.tolist()}); output-error "
-            "training needs motion in the data"
-        )
-    return s
-
-
-def _substeps(model: ArmModel, theta: Tensor, dt: float, substeps: int | str) -> int:
-    if substeps != "auto":
-        return int(substeps)
-    return auto_substeps(model, dt, _METHOD, theta=theta)
-
-
-def _rollout(
-    model: ArmModel,
-    t: Tensor,
-    u: Tensor,
-    x0: Tensor,
-    theta: Tensor,
-    steps: int,
-    adjoint: bool,
-    engine: str = "odeint",
-) -> Tensor:
-    """Simulate `u (N[, B])` from `x0 ([B,] 2)` with parameters θ → `(N, [B,] 2)`; `engine` as in
-    `simulate` (with `adjoint`, always torchdiffeq's adjoint)."""
-    if not adjoint:
-        return simulate(model, t, u, x0, method=_METHOD, substeps=steps, theta=theta, engine=engine)
-    # Same exact-ZOH field as `simulate`; the grid is built per call from the requested times, so
-    # the adjoint's backward integration over [t_i, t_{i−1}] gets its own sub-step grid.
-    fieldfn = ZOHField(model, t, u, theta)
-    options = {"grid_constructor": lambda _f, _y0, tt: sample_grid(tt, steps), "perturb": True}
-    return odeint_adjoint(fieldfn, x0, t, method=_METHOD, options=options, adjoint_params=(theta,))
-
-
-def _loss(sim: Tensor, y: Tensor, scale: Tensor, weights: Tensor) -> Tensor:
-    """Mean of ``Σ_c w_c ((ŷ_c − y_c) / s_c)²`` over all samples but the first (the start)."""
-    e = (sim[1:] - y[1:]) / scale
-    return (e * e * weights).sum(-1).mean()
-
-
-def _draw(data: Sequence[_Data], window: int, batch: int, gen: torch.Generator) -> list[tuple]:
-    """`batch` (experiment, start) pairs, uniform over every valid window start."""
-    counts = [max(d.y.shape[0] - window + 1, 0) for d in data]
-    total = sum(counts)
-    if total == 0:
-        longest = max(d.y.shape[0] for d in data)
-        raise TorchfricError(
-            f"window = {window} samples is longer than every experiment (longest {longest}); "
-            "lower window or use 0 for full-length simulation"
-        )
-    flat = torch.randint(total, (batch,), generator=gen).tolist()
-    edges = np.cumsum([0, *counts])
-    out = []
-    for f in flat:
-        i = int(np.searchsorted(edges, f, side="right") - 1)
-        out.append((i, int(f - edges[i])))
-    return out
-
-
-def _tiles(data: Sequence[_Data], window: int) -> list[tuple]:
-    """Every experiment cut into consecutive windows of `window` samples that share their end
-    points (starts 0, W−1, 2(W−1), …), in order: the fixed L-BFGS loss and the shooting tiles."""
-    return [
-        (i, s) for i, d in enumerate(data) for s in range(0, d.y.shape[0] - window + 1, window - 1)
-    ]
-
-
-def _window_loss(
-    model: ArmModel,
-    data: Sequence[_Data],
-    picks: Sequence[tuple],
-    window: int,
-    theta: Tensor,
-    steps: int,
-    scale: Tensor,
-    weights: Tensor,
-    adjoint: bool,
-) -> Tensor:
-    """Loss over the windows `picks` = [(experiment, start)], simulated as one batch."""
-    t, u, y = _stack_windows(data, picks, window)
-    sim = _rollout(model, t, u, y[0], theta, steps, adjoint)
-    return _loss(sim, y, scale, weights)
-
-
-def _stack_windows(
-    data: Sequence[_Data], picks: Sequence[tuple], window: int
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The windows `picks` = [(experiment, start)] as one batch: `t (W,)`, `u (W, B)`,
-    `y (W, B, 2)`."""
-    u = torch.stack([data[i].u[s : s + window] for i, s in picks], dim=1)
-    y = torch.stack([data[i].y[s : s + window] for i, s in picks], dim=1)
-    t = torch.arange(window, dtype=torch.float64) * data[picks[0][0]].dt
-    return t, u, y
-
-
-def _shooting_loss(
-    model: ArmModel,
-    data: Sequence[_Data],
-    tiles: Sequence[tuple],
-    picks: Sequence[int],
-    window: int,
-    theta: Tensor,
-    delta: Tensor,
-    steps: int,
-    scale: Tensor,
-    weights: Tensor,
-    continuity: float,
-    adjoint: bool,
-) -> Tensor:
-    """Multiple-shooting loss of the tiles `picks` (indices into `tiles`) from learned starts
-    ``y_start + scale·δ``: data term over all W samples plus the continuity penalty."""
-    t, u, y = _stack_windows(data, [tiles[j] for j in picks], window)
-    x0 = y[0] + scale * delta[torch.tensor(list(picks))]
-    sim = _rollout(model, t, u, x0, theta, steps, adjoint)
-    e = (sim - y) / scale
-    out = (e * e * weights).sum(-1).mean()
-    # `_tiles` lists each experiment's tiles in order, so the next tile of the same experiment
-    # is the next entry; it starts where this one ends (shared sample).
-    nxt = [
-        (b, j + 1)
-        for b, j in enumerate(picks)
-        if j + 1 < len(tiles) and tiles[j + 1][0] == tiles[j][0]
-    ]
-    if continuity > 0 and nxt:
-        b_idx = torch.tensor([b for b, _ in nxt])
-        n_idx = torch.tensor([n for _, n in nxt])
-        starts = torch.stack([data[tiles[n][0]].y[tiles[n][1]] for _, n in nxt])
-        gap = (sim[-1, b_idx] - (starts + scale * delta[n_idx])) / scale
-        out = out + continuity * (gap * gap).sum(-1).sum() / len(picks)
-    return out
-
-
-def _full_loss(
-    model: ArmModel,
-    data: Sequence[_Data],
-    theta: Tensor,
-    steps: int,
-    scale: Tensor,
-    weights: Tensor,
-    adjoint: bool,
-    engine: str = "odeint",
-) -> Tensor:
-    """Sample-weighted loss of full-length simulations of every experiment.
-
-    Experiments on the same time grid (e.g. repeats of one recording protocol) are simulated as
-    one batch: one solver loop instead of one per file. `engine` as in `simulate`.
-    """
-    total = sum(d.y.shape[0] - 1 for d in data)
-    out = theta.new_zeros(())
-    for group in _same_grid(data):
-        t = group[0].t
-        u = torch.stack([d.u for d in group], dim=1)  # (N, B)
-        y = torch.stack([d.y for d in group], dim=1)  # (N, B, 2)
-        sim = _rollout(model, t, u, y[0], theta, steps, adjoint, engine)
-        out = out + _loss(sim, y, scale, weights) * (len(group) * (t.shape[0] - 1) / total)
-    return out
-
-
-def _same_grid(data: Sequence[_Data]) -> list[list[_Data]]:
-    """`data` grouped by identical time vectors, in first-seen order."""
-    groups: list[list[_Data]] = []
-    for d in data:
-        for g in groups:
-            if g[0].t.shape == d.t.shape and torch.equal(g[0].t, d.t):
-                g.append(d)
-                break
-        else:
-            groups.append([d])
-    return groups
-
-
-def _generator(seed: int, epoch: int) -> torch.Generator:
-    """The window draws of `epoch` depend on (seed, epoch) only: resuming repeats them."""
-    state = np.random.SeedSequence([seed, epoch]).generate_state(2, dtype=np.uint32)
-    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
 
 
 def identify_output_error(
@@ -366,197 +179,221 @@ def identify_output_error(
             `.last_good` holds the result before that epoch.
     """
     tuning = tuning or OETuning()
-    k = model.num_parameters
-    tuning.check(k)
-    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
-    if not exps:
-        raise TorchfricError("identify_output_error needs at least one training experiment")
-    vals = [validation] if isinstance(validation, Experiment) else list(validation or [])
-    data = _prepare(exps, "experiments")
-    _prepare(vals, "validation experiments")  # the same q̇ check, before any training
-    dts = [d.dt for d in data]
-    if max(dts) - min(dts) > 1e-6 * max(dts):
-        raise TorchfricError(
-            f"training experiments have different sample steps {sorted(set(dts))}; windows are "
-            "simulated on one time grid, so resample them to one step"
-        )
-    for w in (*tuning.schedule, tuning.window):
-        if w > 0 and w > max(d.y.shape[0] for d in data):
-            raise TorchfricError(
-                f"window = {w!r} is invalid; allowed: 0 or 2 … "
-                f"{max(d.y.shape[0] for d in data)} (samples)"
-            )
+    tuning.check(model.num_parameters)
+    data, vals = training_data(experiments, validation, (*tuning.schedule, tuning.window))
     callback = callback or OECallback()
-    scale = _scales(data)
-    weights = torch.tensor(tuple(tuning.weights), dtype=torch.float64)
-    names = _unique([e.name for e in vals])
+    run = _Training(model, data, vals, tuning, start, initial_theta)
+    run.train(callback)
+    if tuning.lbfgs_steps > 0 and not run.stopped and len(run.history) == tuning.epochs:
+        run.polish(callback)
+    return run.result(run.stopped)
 
-    if start is not None:
-        theta0, history, opt_state = start[0], list(start[1]), start[2]
-    else:
-        theta0, history, opt_state = model.get_theta(), [], None
-    theta = torch.nn.Parameter(torch.as_tensor(theta0, dtype=torch.float64).detach().clone())
-    if theta.numel() != k:
-        raise TorchfricError(f"start theta has {theta.numel()} entries, the model has {k}")
-    params = [theta]
-    tiles: list[tuple] = []
-    delta = None
-    if tuning.learn_states:
-        tiles = _tiles(data, tuning.window)
-        saved = start[3] if start is not None and len(start) > 3 else None
-        d0 = torch.zeros(len(tiles), 2, dtype=torch.float64) if saved is None else saved
-        delta = torch.nn.Parameter(torch.as_tensor(d0, dtype=torch.float64).detach().clone())
-        if delta.shape != (len(tiles), 2):
-            raise TorchfricError(
-                f"start shooting states have shape {tuple(delta.shape)}, the data give "
-                f"{len(tiles)} tiles of {tuning.window} samples"
-            )
-        params.append(delta)
-    opt = torch.optim.Adam(params, lr=tuning.lr)
-    if opt_state is not None:
-        opt.load_state_dict(opt_state)
-    work = copy.deepcopy(model)
 
-    # Full-length simulations (validation, and training with window 0) go through the compiled
-    # rk4 when asked; the short batched windows stay on odeint (cheap, and one compiled shape
-    # per window batch would add a compile each).
-    full_engine = "compiled" if tuning.compile else "odeint"
+class _BestEpoch:
+    """The epoch whose θ a run returns, and the early stop's count.
 
-    def validate(th: Tensor) -> dict[str, dict[str, float]] | None:
-        if not vals:
-            return None
-        work.set_theta(th.detach())
-        steps = _substeps(model, th, vals[0].dt, tuning.substeps)
-        out = {}
-        for name, e in zip(names, vals, strict=True):
-            s = score_simulation(work, e, method=_METHOD, substeps=steps, engine=full_engine)
-            out[name] = {"fit_q": s.fit_q, "fit_qdot": s.fit_qdot}
-        return out
+    With validation: the epoch with the best mean validation FIT so far. Epoch 0 (the initial θ)
+    is the baseline when its score is known; a later evaluation must beat the best strictly, and
+    `since` counts the evaluations since the last one that did (patience). Epochs that were not
+    evaluated change nothing. Without validation the best epoch is simply the latest (and the
+    returned θ the current one, see `_Training.result`).
+    """
 
-    theta_init = theta.detach().clone() if not history else initial_theta
-    if theta_init is not None:
-        theta_init = torch.as_tensor(theta_init, dtype=torch.float64).detach().clone()
-    # Best θ so far: by validation score when validating, else simply the latest. Epoch 0 (the
-    # initial θ) is the baseline; a resumed run replays the recorded epochs after it.
-    best_epoch, best_theta, best_score, since = 0, theta.detach().clone(), -math.inf, 0
-    if vals and theta_init is not None:
-        fit0 = validate(theta_init)
-        best_theta = theta_init.clone()
-        best_score = EpochRecord(0, math.nan, {}, 0.0, 0.0, fit0).val_score or -math.inf
-    for r in history:
-        if r.val_score is not None:
-            if r.val_score > best_score:
-                best_epoch, best_theta, best_score, since = (
-                    r.index,
-                    torch.tensor(r.theta),
-                    r.val_score,
-                    0,
-                )
+    def __init__(self, validating: bool, theta: Tensor) -> None:
+        self.validating = validating
+        self.epoch = 0
+        self.theta = theta
+        self.score = -math.inf
+        self.since = 0
+
+    def baseline(self, theta: Tensor, val_fit: ValFit | None) -> None:
+        """Epoch 0: the initial θ and its validation FIT, the score to beat."""
+        self.theta = theta
+        self.score = _mean_fit(val_fit) or -math.inf  # (a score of exactly 0 counts as none)
+
+    def note(self, record: EpochRecord, theta: Tensor) -> None:
+        """Take epoch `record` (θ after it: `theta`) into account."""
+        if not self.validating:
+            self.epoch = record.index
+        elif record.val_score is not None:
+            if record.val_score > self.score:
+                self.epoch, self.theta = record.index, theta
+                self.score, self.since = record.val_score, 0
             else:
-                since += 1
-    if not vals and history:
-        best_epoch = history[-1].index
+                self.since += 1
 
-    def result(stopped: bool) -> OEResult:
-        th = best_theta if vals else theta.detach().clone()
-        fitted = copy.deepcopy(model).set_theta(th)
-        return OEResult(
-            fitted,
-            th.clone(),
-            list(history),
-            best_epoch,
-            stopped,
-            copy.deepcopy(opt.state_dict()),
-            None if delta is None else delta.detach().clone(),
-            theta_init,
-        )
 
-    def record(index, loss, lr, t0, window, force_eval=False) -> EpochRecord:
-        th = theta.detach().clone()
-        fit = validate(th) if (force_eval or index % tuning.eval_every == 0) else None
-        return EpochRecord(
-            index=index,
-            loss=loss,
-            parameters=dict(zip(model.theta_names, model.to_physical(th).tolist(), strict=True)),
-            lr=lr,
-            seconds=time.perf_counter() - t0,
-            val_fit=fit,
-            theta=th.tolist(),
-            window=window,
-        )
+class _Training:
+    """One output-error run: θ (and the shooting offsets δ), Adam, the epoch history and the best
+    epoch so far. Built from the checked data and an optional resume `start`."""
 
-    stopped = since >= tuning.patience if vals else False
-    for epoch in range(len(history) + 1, tuning.epochs + 1):
-        if stopped:
-            break
-        t0 = time.perf_counter()
-        window = tuning.window_at(epoch)
-        lr = tuning.lr_at(epoch)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        steps = _substeps(model, theta, dts[0], tuning.substeps)
-        opt.zero_grad()
-        if delta is not None:
-            gen = _generator(tuning.seed, epoch)
-            chosen = torch.randperm(len(tiles), generator=gen)[: tuning.batch].sort().values
-            loss = _shooting_loss(
-                model, data, tiles, chosen.tolist(), window, theta, delta, steps, scale,
-                weights, tuning.continuity, tuning.adjoint,
-            )  # fmt: skip
-        elif window == 0:
-            loss = _full_loss(
-                model, data, theta, steps, scale, weights, tuning.adjoint, full_engine
-            )
+    def __init__(
+        self,
+        model: ArmModel,
+        data: list[ExperimentTensors],
+        vals: list[Experiment],
+        tuning: OETuning,
+        start: tuple | None,
+        initial_theta: Tensor | None,
+    ) -> None:
+        self.model, self.data, self.vals, self.tuning = model, data, vals, tuning
+        self.scale = scales(data)
+        self.weights = torch.tensor(tuple(tuning.weights), dtype=torch.float64)
+        self.names = _unique([e.name for e in vals])
+        self._start_parameters(start)
+        self.work = copy.deepcopy(model)  # validation simulates this copy, θ set per evaluation
+        # Full-length simulations (validation, and training with window 0) go through the
+        # compiled rk4 when asked; the short batched windows stay on odeint (cheap, and one
+        # compiled shape per window batch would add a compile each).
+        self.full_engine = "compiled" if tuning.compile else "odeint"
+        self._replay(initial_theta)
+
+    def _start_parameters(self, start: tuple | None) -> None:
+        """θ, the shooting offsets δ (learn_states) and Adam: fresh, or from a resume `start`."""
+        k = self.model.num_parameters
+        if start is not None:
+            theta0, self.history, opt_state = start[0], list(start[1]), start[2]
         else:
-            picks = _draw(data, window, tuning.batch, _generator(tuning.seed, epoch))
-            loss = _window_loss(
-                model, data, picks, window, theta, steps, scale, weights, tuning.adjoint
+            theta0, self.history, opt_state = self.model.get_theta(), [], None
+        t0 = torch.as_tensor(theta0, dtype=torch.float64).detach().clone()
+        self.theta = torch.nn.Parameter(t0)
+        if self.theta.numel() != k:
+            raise TorchfricError(f"start theta has {self.theta.numel()} entries, the model has {k}")
+        self.params = [self.theta]
+        self.tiles: list[tuple] = []
+        self.delta: torch.nn.Parameter | None = None
+        if self.tuning.learn_states:
+            self.tiles = cut_tiles(self.data, self.tuning.window)
+            saved = start[3] if start is not None and len(start) > 3 else None
+            n = len(self.tiles)
+            d0 = torch.zeros(n, 2, dtype=torch.float64) if saved is None else saved
+            self.delta = torch.nn.Parameter(
+                torch.as_tensor(d0, dtype=torch.float64).detach().clone()
             )
+            if self.delta.shape != (n, 2):
+                raise TorchfricError(
+                    f"start shooting states have shape {tuple(self.delta.shape)}, the data give "
+                    f"{n} tiles of {self.tuning.window} samples"
+                )
+            self.params.append(self.delta)
+        self.opt = torch.optim.Adam(self.params, lr=self.tuning.lr)
+        if opt_state is not None:
+            self.opt.load_state_dict(opt_state)
+
+    def _replay(self, initial_theta: Tensor | None) -> None:
+        """The best epoch and early-stop state at the start: epoch 0 (the initial θ) is the
+        baseline; a resumed run replays its recorded epochs after it."""
+        theta_init = self.theta.detach().clone() if not self.history else initial_theta
+        if theta_init is not None:
+            theta_init = torch.as_tensor(theta_init, dtype=torch.float64).detach().clone()
+        self.theta_init = theta_init
+        self.best = _BestEpoch(bool(self.vals), self.theta.detach().clone())
+        if self.vals and theta_init is not None:
+            self.best.baseline(theta_init.clone(), self.validate(theta_init))
+        for r in self.history:
+            self.best.note(r, torch.tensor(r.theta))
+        self.stopped = self.best.since >= self.tuning.patience
+
+    def train(self, callback: OECallback) -> None:
+        """The Adam epochs after those already in the history, until the last, the early stop
+        (patience) or a callback's False."""
+        for index in range(len(self.history) + 1, self.tuning.epochs + 1):
+            if self.stopped:
+                break
+            rec = self.epoch(index)
+            self.history.append(rec)
+            self.best.note(rec, self.theta.detach().clone())
+            self.stopped = self.best.since >= self.tuning.patience
+            if callback.on_epoch_end(rec, self.result(self.stopped)) is False:
+                self.stopped = True
+                break
+
+    def epoch(self, index: int) -> EpochRecord:
+        """One Adam step on epoch `index`'s loss (its windows, learning rate and window length)."""
+        t0 = time.perf_counter()
+        window = self.tuning.window_at(index)
+        lr = self.tuning.lr_at(index)
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        steps = self.substeps()
+        self.opt.zero_grad()
+        loss = self.loss(window, steps, self._epoch_picks(index, window))
         loss.backward()
-        grads_ok = all(bool(torch.isfinite(p.grad).all()) for p in params)
+        self._check_finite(loss, index, window)
+        if self.tuning.clip > 0:
+            for p in self.params:  # θ and the shooting states each to the threshold
+                torch.nn.utils.clip_grad_norm_([p], self.tuning.clip)
+        self.opt.step()
+        last = index == self.tuning.epochs
+        return self.record(index, float(loss.detach()), lr, t0, window, last)
+
+    def _epoch_picks(self, index: int, window: int) -> list:
+        """What epoch `index` simulates, drawn from (seed, epoch) only: `batch` shooting tiles
+        (indices, sorted), `batch` random windows, or nothing (full length)."""
+        if self.delta is not None:
+            gen = epoch_generator(self.tuning.seed, index)
+            chosen = torch.randperm(len(self.tiles), generator=gen)[: self.tuning.batch]
+            return chosen.sort().values.tolist()
+        if window == 0:
+            return []
+        return draw_windows(
+            self.data, window, self.tuning.batch, epoch_generator(self.tuning.seed, index)
+        )
+
+    def _check_finite(self, loss: Tensor, index: int, window: int) -> None:
+        """Raise `DivergenceError` (with the result before this epoch) on a non-finite loss or
+        gradient."""
+        grads_ok = all(bool(torch.isfinite(p.grad).all()) for p in self.params)
         if not (torch.isfinite(loss) and grads_ok):
             raise DivergenceError(
-                f"output-error training diverged in epoch {epoch} (window {window}): loss = "
+                f"output-error training diverged in epoch {index} (window {window}): loss = "
                 f"{float(loss):.4g}, gradient finite = {grads_ok}. "
                 "Fix: lower lr, use shorter windows, more substeps, or a better start "
                 "(model.init = 'prefit' or an EKF result); the last good parameters are kept",
-                last_good=result(False),
+                last_good=self.result(False),
             )
-        if tuning.clip > 0:
-            for p in params:  # θ and the shooting states each to the threshold
-                torch.nn.utils.clip_grad_norm_([p], tuning.clip)
-        opt.step()
-        rec = record(epoch, float(loss.detach()), lr, t0, window, epoch == tuning.epochs)
-        history.append(rec)
-        if rec.val_score is not None:
-            if rec.val_score > best_score:
-                best_epoch, best_theta, best_score, since = (
-                    epoch,
-                    theta.detach().clone(),
-                    rec.val_score,
-                    0,
-                )
-            else:
-                since += 1
-                stopped = since >= tuning.patience
-        if not vals:
-            best_epoch = epoch
-        if callback.on_epoch_end(rec, result(stopped)) is False:
-            stopped = True
-            break
 
-    if tuning.lbfgs_steps > 0 and not stopped and len(history) == tuning.epochs:
+    def substeps(self) -> int:
+        """Solver sub-steps per sample of the training data at the current θ."""
+        return solver_substeps(self.model, self.theta, self.data[0].dt, self.tuning.substeps)
+
+    def loss(self, window: int, steps: int, picks: list) -> Tensor:
+        """The training loss: of the shooting tiles `picks` (learn_states), of full-length
+        simulations (window 0), or of the windows `picks` = [(experiment, start)]."""
+        t = self.tuning
+        if self.delta is not None:
+            return shooting_loss(
+                self.model, self.data, self.tiles, picks, window, self.theta, self.delta, steps,
+                self.scale, self.weights, t.continuity, t.adjoint,
+            )  # fmt: skip
+        if window == 0:
+            return full_loss(
+                self.model, self.data, self.theta, steps, self.scale, self.weights, t.adjoint,
+                self.full_engine,
+            )  # fmt: skip
+        return window_loss(
+            self.model, self.data, picks, window, self.theta, steps, self.scale, self.weights,
+            t.adjoint,
+        )  # fmt: skip
+
+    def polish(self, callback: OECallback) -> None:
+        """The L-BFGS polish after the last epoch (recorded as epoch `epochs + 1`): from the best
+        θ by validation (else the last), on a fixed loss (every tile, or full length), kept only
+        if it lowers that loss."""
         t0 = time.perf_counter()
-        if vals:  # polish from the best θ by validation
+        if self.vals:  # polish from the best θ by validation
             with torch.no_grad():
-                theta.copy_(best_theta)
-        window = tuning.window_at(tuning.epochs)
-        steps = _substeps(model, theta, dts[0], tuning.substeps)
-        picks = _tiles(data, window) if window else []
+                self.theta.copy_(self.best.theta)
+        window = self.tuning.window_at(self.tuning.epochs)
+        steps = self.substeps()
+        if self.delta is not None:
+            picks = list(range(len(self.tiles)))
+        else:
+            picks = cut_tiles(self.data, window) if window else []
         lbfgs = torch.optim.LBFGS(
-            params,
+            self.params,
             lr=1.0,
-            max_iter=tuning.lbfgs_steps,
+            max_iter=self.tuning.lbfgs_steps,
             tolerance_grad=1e-12,
             tolerance_change=1e-15,
             line_search_fn="strong_wolfe",
@@ -564,39 +401,71 @@ def identify_output_error(
 
         def closure() -> Tensor:
             lbfgs.zero_grad()
-            if delta is not None:
-                f = _shooting_loss(
-                    model, data, tiles, list(range(len(tiles))), window, theta, delta, steps,
-                    scale, weights, tuning.continuity, tuning.adjoint,
-                )  # fmt: skip
-            elif window == 0:
-                f = _full_loss(
-                    model, data, theta, steps, scale, weights, tuning.adjoint, full_engine
-                )
-            else:
-                f = _window_loss(
-                    model, data, picks, window, theta, steps, scale, weights, tuning.adjoint
-                )
+            f = self.loss(window, steps, picks)
             f.backward()
             return f
 
         before = float(closure().detach())
-        params_before = [p.detach().clone() for p in params]
+        params_before = [p.detach().clone() for p in self.params]
         lbfgs.step(closure)
         after = float(closure().detach())
         if not math.isfinite(after) or after > before:
             with torch.no_grad():
-                for p, b in zip(params, params_before, strict=True):
+                for p, b in zip(self.params, params_before, strict=True):
                     p.copy_(b)
             after = before
-        rec = record(tuning.epochs + 1, after, 1.0, t0, window, force_eval=True)
-        history.append(rec)
-        if rec.val_score is not None and rec.val_score > best_score:
-            best_epoch, best_theta, best_score = rec.index, theta.detach().clone(), rec.val_score
-        if not vals:
-            best_epoch = rec.index
-        callback.on_epoch_end(rec, result(False))
-    return result(stopped)
+        rec = self.record(self.tuning.epochs + 1, after, 1.0, t0, window, force_eval=True)
+        self.history.append(rec)
+        self.best.note(rec, self.theta.detach().clone())
+        callback.on_epoch_end(rec, self.result(False))
+
+    def validate(self, theta: Tensor) -> ValFit | None:
+        """FIT of q and q̇ per validation experiment, simulated open loop at `theta`."""
+        if not self.vals:
+            return None
+        self.work.set_theta(theta.detach())
+        steps = solver_substeps(self.model, theta, self.vals[0].dt, self.tuning.substeps)
+        out = {}
+        for name, e in zip(self.names, self.vals, strict=True):
+            s = score_simulation(
+                self.work, e, method=METHOD, substeps=steps, engine=self.full_engine
+            )
+            out[name] = {"fit_q": s.fit_q, "fit_qdot": s.fit_qdot}
+        return out
+
+    def record(
+        self, index: int, loss: float, lr: float, t0: float, window: int, force_eval: bool = False
+    ) -> EpochRecord:
+        """The `EpochRecord` of epoch `index` at the current θ; validated every `eval_every`
+        epochs or when `force_eval`."""
+        th = self.theta.detach().clone()
+        due = force_eval or index % self.tuning.eval_every == 0
+        physical = self.model.to_physical(th).tolist()
+        return EpochRecord(
+            index=index,
+            loss=loss,
+            parameters=dict(zip(self.model.theta_names, physical, strict=True)),
+            lr=lr,
+            seconds=time.perf_counter() - t0,
+            val_fit=self.validate(th) if due else None,
+            theta=th.tolist(),
+            window=window,
+        )
+
+    def result(self, stopped: bool) -> OEResult:
+        """The `OEResult` so far: the best θ by validation (else the current one)."""
+        th = self.best.theta if self.vals else self.theta.detach().clone()
+        fitted = copy.deepcopy(self.model).set_theta(th)
+        return OEResult(
+            fitted,
+            th.clone(),
+            list(self.history),
+            self.best.epoch,
+            stopped,
+            copy.deepcopy(self.opt.state_dict()),
+            None if self.delta is None else self.delta.detach().clone(),
+            self.theta_init,
+        )
 
 
 def _unique(names: Sequence[str]) -> list[str]:

@@ -296,10 +296,10 @@ def _native_rows(
     to the `vmap` forms to rounding. Each uses its given `vmap` form instead, from then on, if
     the translation fails or there is no C compiler. The generated code is kept per model
     structure, so later pre-fits of the same structure do not trace again."""
+    from ..accel import structure_key
     from ..accel.native import NativeUnavailable, make_native_chunk
-    from ..models.simulate import _structure_key
 
-    key = _structure_key(model)
+    key = structure_key(model)
     if key not in _ROW_CHUNKS:
 
         def grad_row(dummy, x1, u1, a1, theta):  # type: ignore[no-untyped-def]

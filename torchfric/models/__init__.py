@@ -1,1 +1,43 @@
-"""models"""
+"""The grey-box model: friction modules, the arm (one vector field), and simulation.
+
+- `friction`: black-box friction curves, odd and zero at zero by construction
+  (`OddTanhFriction`, `PolytopicFriction`) and the white-box baselines, each with a pure
+  ``evaluate(v, params)`` and a registry (`FRICTIONS`, `make_friction`);
+- `arm`: `ArmModel`, whose right-hand side `arm_field` (with `arm_friction`) is the one vector
+  field that simulation, the EKF, output error, the pre-fit and the TorchScript export all use;
+- `simulate`: open-loop simulation on the sample grid with a zero-order hold, by torchdiffeq
+  or by any engine registered in its `ENGINES` table (`torchfric.accel` registers "compiled").
+
+Nothing here imports the data, estimators, accel or runs layers.
+"""
+
+from .arm import ArmModel, arm_field, arm_friction
+from .friction import (
+    FRICTIONS,
+    CoulombFriction,
+    Friction,
+    OddTanhFriction,
+    PolytopicFriction,
+    StribeckFriction,
+    make_friction,
+)
+from .simulate import ENGINES, SOLVERS, auto_substeps, register_engine, rk4_step, simulate
+
+__all__ = [
+    "ArmModel",
+    "arm_field",
+    "arm_friction",
+    "FRICTIONS",
+    "CoulombFriction",
+    "Friction",
+    "OddTanhFriction",
+    "PolytopicFriction",
+    "StribeckFriction",
+    "make_friction",
+    "ENGINES",
+    "SOLVERS",
+    "auto_substeps",
+    "register_engine",
+    "rk4_step",
+    "simulate",
+]

@@ -12,8 +12,8 @@ interpolated.
 
 from __future__ import annotations
 
-import json
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -22,15 +22,18 @@ from torchdiffeq import odeint
 from ..errors import TorchfricError
 from .arm import ArmModel
 
-__all__ = ["simulate", "rk4_step", "auto_substeps", "sample_grid", "SOLVERS", "ENGINES"]
-
-# "odeint": torchdiffeq (differentiable, the reference). "compiled": the same RK4 (3/8 rule)
-# steps on the same grid as a `torch.compile`d scan over 1000 solver steps per call; agrees with
-# "odeint" to rounding (tested). Its gradient (θ and x0) is the discrete adjoint of those steps:
-# a second compiled scan runs backwards through the stored solver states with the autograd VJP
-# of one step, so it equals backpropagation through odeint's rk4 to rounding (tested).
-ENGINES = ("odeint", "compiled")
-_CHUNK = 1000
+__all__ = [
+    "simulate",
+    "rk4_step",
+    "auto_substeps",
+    "sample_grid",
+    "SOLVERS",
+    "ENGINES",
+    "Engine",
+    "register_engine",
+    "odeint_engine",
+    "ZOHField",
+]
 
 # Fixed-grid solvers and the largest stable |λ h| on the negative real axis we allow for them
 # (the theoretical limits are 2, 2 and 2.78; a margin keeps stiff friction well damped).
@@ -53,6 +56,67 @@ class ZOHField(nn.Module):
         k = torch.searchsorted(self.t, time.reshape(1), right=True) - 1
         k = int(k.clamp(0, self.last))
         return self.model.dynamics(x, self.u[k], self.fric, self.arm)
+
+
+Engine = Callable[..., Tensor]
+"""``engine(model, t, u, x0, theta, *, grid, substeps, method) -> states``: one way to run
+`simulate`'s checked problem. `theta` is θ `(k,)` (the model's own when the caller gave none),
+`grid` the solver grid (`sample_grid`, `substeps` solver steps per sample interval), `method`
+one of `SOLVERS`; it returns the states at the sample times `t`, as `simulate` does."""
+
+
+def odeint_engine(
+    model: ArmModel,
+    t: Tensor,
+    u: Tensor,
+    x0: Tensor,
+    theta: Tensor,
+    *,
+    grid: Tensor,
+    substeps: int,
+    method: str,
+) -> Tensor:
+    """The "odeint" engine: torchdiffeq's fixed-grid `method` on `grid` with the exact
+    zero-order hold of `ZOHField` (differentiable by autograd; the reference)."""
+    field = ZOHField(model, t, u, theta)
+    options = {"grid_constructor": lambda _f, _y0, _t: grid, "perturb": True}
+    return odeint(field, x0, t, method=method, options=options)
+
+
+# The simulation engines by name, in the manner of torchdiffeq's solver table. "odeint":
+# torchdiffeq (differentiable, the reference), always here. "compiled": the same RK4 (3/8 rule)
+# steps on the same grid as a compiled scan over 1000 solver steps per call; agrees with
+# "odeint" to rounding (tested). Its gradient (θ and x0) is the discrete adjoint of those steps:
+# a second compiled scan runs backwards through the stored solver states with the autograd VJP
+# of one step, so it equals backpropagation through odeint's rk4 to rounding (tested). It lives
+# in `torchfric.accel.simulation`, which registers it (`register_engine`) when `torchfric.accel`
+# is imported, as importing `torchfric` does; models never import accel.
+ENGINES: dict[str, Engine] = {"odeint": odeint_engine}
+
+# Engines that another part of torchfric registers, and the module that does.
+_REGISTERED_BY = {"compiled": "torchfric.accel"}
+
+
+def register_engine(name: str, engine: Engine) -> None:
+    """Make `engine` (see `Engine`) available as ``simulate(..., engine=name)``; a later
+    registration under the same name replaces the earlier one."""
+    if not isinstance(name, str) or not name:
+        raise TorchfricError(f"an engine name must be a non-empty string, got {name!r}")
+    if not callable(engine):
+        raise TorchfricError(f"engine {name!r} must be callable, got {type(engine).__name__}")
+    ENGINES[name] = engine
+
+
+def _engine(name: str) -> Engine:
+    """The registered engine `name`, or a one-line error saying why there is none."""
+    if name in ENGINES:
+        return ENGINES[name]
+    if name in _REGISTERED_BY:
+        raise TorchfricError(
+            f"simulation engine {name!r} is not registered: import {_REGISTERED_BY[name]} "
+            "(importing torchfric does) to register it"
+        )
+    raise TorchfricError(f"unknown simulation engine {name!r}; choose one of {tuple(ENGINES)}")
 
 
 def sample_grid(t: Tensor, substeps: int) -> Tensor:
@@ -111,7 +175,8 @@ def simulate(
         theta: optional θ `(k,)` in estimation coordinates (default: the model's own, differentiable).
         engine: "odeint" (torchdiffeq, default) or "compiled" (`ENGINES`: the same rk4 steps as
             a compiled scan, batches included; gradients in θ and `x0` by a compiled discrete
-            adjoint, none in `t` or `u`; another solver goes through odeint).
+            adjoint, none in `t` or `u`; another solver goes through odeint), or any engine
+            added with `register_engine`.
 
     Returns:
         `(N, 2)` (or `(N, B, 2)`) states ``[q, q̇]`` at the sample times; row 0 is `x0`.
@@ -145,15 +210,10 @@ def simulate(
         steps = substeps
     else:
         raise TorchfricError(f"substeps must be a positive integer or 'auto', got {substeps!r}")
-    if engine not in ENGINES:
-        raise TorchfricError(f"unknown simulation engine {engine!r}; choose one of {ENGINES}")
+    run = _engine(engine)
     grid = sample_grid(t, steps)
     th = model.theta_vector() if theta is None else theta
-    if engine == "compiled" and method == "rk4":
-        return _compiled_rk4(model, grid, u, x0, th, steps)
-    field = ZOHField(model, t, u, theta)
-    options = {"grid_constructor": lambda _f, _y0, _t: grid, "perturb": True}
-    return odeint(field, x0, t, method=method, options=options)
+    return run(model, t, u, x0, th, grid=grid, substeps=steps, method=method)
 
 
 def rk4_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
@@ -164,115 +224,3 @@ def rk4_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm
     k3 = model.dynamics(x + h * (k2 - k1 / 3.0), u, fric, arm)
     k4 = model.dynamics(x + h * (k1 - k2 + k3), u, fric, arm)
     return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
-
-
-_RK4_CHUNKS: dict[tuple[str, str], object] = {}
-
-
-def _structure_key(model: ArmModel) -> str:
-    """What fixes a model's compiled code: its spec without θ's values."""
-    spec = model.spec()
-    spec["friction"] = {k: v for k, v in spec["friction"].items() if k != "values"}
-    spec.pop("arm", None)  # θ's physical values; everything else fixes the structure
-    return json.dumps(spec, sort_keys=True, default=str)
-
-
-def _rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-untyped-def]
-    """`torchfric.ekf.make_chunk` of `rk4_step`, compiled once per process and model
-    *structure* (θ is an input, so the fitted models of successive passes or epochs share it).
-
-    - ``"forward"``: ``chunk((x,), (u (C, ...), h (C,)), valid, (θ,)) -> ((x,), (states (C, ...),))``,
-      each step with its own held input and length.
-    - ``"backward"``: the discrete adjoint, run over the steps in reverse order:
-      ``chunk((λ, g_θ), (x_k (C, ...), u (C, ...), h (C,), g_k (C, ...)), valid, (θ,))``. With λ
-      the loss gradient with respect to the state after step k, one step gives
-      ``λ ← g_k + (∂x_{k+1}/∂x_k)ᵀ λ`` and ``g_θ ← g_θ + (∂x_{k+1}/∂θ)ᵀ λ`` (the VJP of
-      `rk4_step` by autograd), `g_k` being the loss's direct gradient with respect to x_k.
-    """
-    key = (_structure_key(model), direction)
-    if key not in _RK4_CHUNKS:
-        from ..estimators.ekf import chunk_options, fused_matmul, make_chunk
-
-        if direction == "forward":
-
-            def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
-                x1 = rk4_step(model, x, u, h, *model.split(theta))
-                return (x1,), (x1,)
-
-        else:
-
-            def one(lam: Tensor, g_theta: Tensor, x: Tensor, u: Tensor, h: Tensor, g: Tensor,
-                    theta: Tensor):  # type: ignore[no-untyped-def]  # fmt: skip
-                def step(x_: Tensor, th: Tensor) -> Tensor:
-                    return rk4_step(model, x_, u, h, *model.split(th))
-
-                _, pull = torch.func.vjp(step, x, theta)
-                d_x, d_theta = pull(lam)
-                return (g + d_x, g_theta + d_theta), ()
-
-        # Its loops run over 2 states and a few parameters, like the fused EKF step's.
-        # Generated C first (`torchfric.native`; a batch of B runs is B copies of the step in
-        # one function), the Inductor scan where that cannot serve a shape.
-        chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True)
-        _RK4_CHUNKS[key] = (model, chunk)
-    return _RK4_CHUNKS[key][1]  # type: ignore[index]
-
-
-def _run_chunks(chunk, carry, xs, consts, *, reverse: bool = False):  # type: ignore[no-untyped-def]
-    """Apply a `make_chunk` function along the leading axis of `xs` (T rows), `_CHUNK` rows per
-    call (the last call padded); returns the final carry and each per-row output (T rows)."""
-    from ..estimators.ekf import iter_chunks
-
-    if reverse:
-        xs = tuple(a.flip(0) for a in xs)
-    outs: list[tuple[Tensor, ...]] = []
-    for _, m, part, valid in iter_chunks(xs, _CHUNK):
-        carry, o = chunk(carry, part, valid, consts)
-        outs.append(tuple(a[:m] for a in o))
-    joined = tuple(torch.cat(cols) for cols in zip(*outs, strict=True)) if outs else ()
-    return carry, joined
-
-
-def _rk4_states(model: ArmModel, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor) -> Tensor:
-    """Every solver state ``(T+1, [B,] 2)`` from `x0` over the steps ``(us, hs)``; no gradient."""
-    (_,), (states,) = _run_chunks(_rk4_chunk(model), (x0.clone(),), (us, hs), (theta,))
-    return torch.cat([x0.unsqueeze(0), states])
-
-
-class _CompiledRK4(torch.autograd.Function):
-    """All solver states ``(T+1, [B,] 2)`` of rk4 from `x0` over the steps ``(us, hs)``, with
-    the exact gradient of that discrete map by a compiled reverse scan (`_rk4_chunk`)."""
-
-    @staticmethod
-    def forward(ctx, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor, model: ArmModel) -> Tensor:  # type: ignore[no-untyped-def,override]
-        th = theta.detach()
-        states = _rk4_states(model, th, x0.detach(), us, hs)
-        ctx.model = model
-        ctx.save_for_backward(th, states, us, hs)
-        return states
-
-    @staticmethod
-    def backward(ctx, g_states: Tensor):  # type: ignore[no-untyped-def,override]
-        th, states, us, hs = ctx.saved_tensors
-        carry = (g_states[-1].clone(), torch.zeros_like(th))
-        xs = (states[:-1], us, hs, g_states[:-1])
-        (lam, g_theta), _ = _run_chunks(
-            _rk4_chunk(ctx.model, "backward"), carry, xs, (th,), reverse=True
-        )
-        return g_theta, lam, None, None, None
-
-
-def _compiled_rk4(
-    model: ArmModel, grid: Tensor, u: Tensor, x0: Tensor, theta: Tensor, steps: int
-) -> Tensor:
-    """`simulate`'s rk4 on `grid` (`steps` solver steps per sample) through `_rk4_chunk`;
-    differentiable in θ and x0 (`_CompiledRK4`) when either needs a gradient."""
-    n = (grid.numel() - 1) // steps + 1
-    hs = grid[1:] - grid[:-1]
-    us = u[:-1].repeat_interleave(steps, dim=0)  # u_k held over its interval's sub-steps
-    if torch.is_grad_enabled() and (theta.requires_grad or x0.requires_grad):
-        states = _CompiledRK4.apply(theta, x0, us, hs, model)
-    else:
-        with torch.no_grad():
-            states = _rk4_states(model, theta.detach(), x0.detach(), us, hs)
-    return states[::steps][:n]

@@ -103,13 +103,13 @@ def _refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> 
 
 def _load_for_eval(checkpoint: str, data: str):  # type: ignore[no-untyped-def]
     from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
-    from .runner import _load_one
+    from .loading import load_record
 
     model = load_checkpoint(checkpoint)
     cfg = checkpoint_config(read_checkpoint(checkpoint))
     # The training's sample range does not apply to the file being evaluated.
     cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, start=0, stop=None))
-    exp, _ = _load_one(cfg, data)
+    exp, _ = load_record(cfg, data)
     return model, cfg, exp
 
 
@@ -194,14 +194,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="torchfric",
-        description="Grey-box identification of machines with friction (Hensen et al.): "
-        "augmented-state EKF, odd-by-construction friction models, config-to-checkpoint runs.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _add_train(sub: argparse._SubParsersAction) -> None:
+    """``torchfric train CONFIG``: identify a model from a TOML config."""
     p = sub.add_parser(
         "train",
         help="identify a model from a TOML config",
@@ -242,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=_cmd_train)
 
+
+def _add_evaluate(sub: argparse._SubParsersAction) -> None:
+    """``torchfric evaluate CHECKPOINT DATA``: open-loop scores on a data file."""
     p = sub.add_parser(
         "evaluate",
         help="open-loop simulation scores of a checkpoint on data",
@@ -254,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=_cmd_evaluate)
 
+
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    """``torchfric simulate CHECKPOINT DATA --out CSV``."""
     p = sub.add_parser(
         "simulate",
         help="simulate a checkpoint on a data file's input",
@@ -265,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_simulate)
 
+
+def _add_export(sub: argparse._SubParsersAction) -> None:
+    """``torchfric export CHECKPOINT --out FILE``: a TorchScript module."""
     p = sub.add_parser(
         "export",
         help="export a checkpoint as TorchScript",
@@ -281,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_export)
 
+
+def _add_generate(sub: argparse._SubParsersAction) -> None:
+    """``torchfric generate OUTDIR``: the synthetic rig's data sets."""
     p = sub.add_parser(
         "generate",
         help="write the synthetic rig's data sets",
@@ -290,6 +296,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="replace the rig's files in OUTDIR")
     p.set_defaults(func=_cmd_generate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``torchfric`` argument parser with its five subcommands."""
+    parser = argparse.ArgumentParser(
+        prog="torchfric",
+        description="Grey-box identification of machines with friction (Hensen et al.): "
+        "augmented-state EKF, odd-by-construction friction models, config-to-checkpoint runs.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_add_train, _add_evaluate, _add_simulate, _add_export, _add_generate):
+        add(sub)
     return parser
 
 

@@ -1,7 +1,7 @@
 """ATen operations on arrays of symbols: what `make_fx`'s graph of the step becomes.
 
 `_OPS` maps each ATen overload that the filter's steps use (and the common ones around them) to
-the same operation on numpy object arrays of `torchfric.native.scalar` symbols; `_evaluate` runs
+the same operation on numpy object arrays of `torchfric.accel.native.scalar` symbols; `_evaluate` runs
 a traced graph through it. An overload outside the table raises `NativeUnavailable` naming it.
 """
 
@@ -40,6 +40,9 @@ from .scalar import (
     _unary,
     _where,
 )
+
+# Nothing public: `_OPS` and `_evaluate` serve `emit` inside this package.
+__all__: list[str] = []
 
 _add_a = _lift(_add, 2)
 _sub_a = _lift(_sub, 2)

@@ -20,6 +20,9 @@ from torch import Tensor
 from .aten import _arr_dtype, _evaluate
 from .scalar import _C_TYPE, _MATH, NativeUnavailable, Scalar, _dtype, _Graph, _promote, _Sym, _to
 
+# Nothing public: `_source` serves the package's `make_native_chunk`.
+__all__: list[str] = []
+
 
 def _literal(a: Scalar, dtype: str) -> str:
     if dtype == "d":

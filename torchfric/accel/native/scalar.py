@@ -1,4 +1,4 @@
-"""The scalar expression graph that `torchfric.native` traces the step into.
+"""The scalar expression graph that `torchfric.accel.native` traces the step into.
 
 Every value of the traced computation is a `_Sym` node of a `_Graph` (or a Python constant);
 operations intern their nodes, so equal sub-expressions are shared, and fold constants and the
@@ -15,6 +15,8 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+
+__all__ = ["NativeUnavailable", "Scalar"]
 
 
 class NativeUnavailable(RuntimeError):

@@ -1,0 +1,133 @@
+"""The "compiled" simulation engine: `simulate`'s rk4 as compiled chunks of solver steps.
+
+The same RK4 (3/8 rule) steps (`torchfric.models.simulate.rk4_step`) on the same grid as the
+"odeint" engine, run by `torchfric.accel.chunks.make_chunk` over `CHUNK` solver steps per call
+(generated C first, the Inductor scan where that cannot serve a shape); it agrees with "odeint"
+to rounding. Its gradient in θ and x0 is the discrete adjoint of those steps: a second compiled
+scan runs backwards through the stored solver states with the autograd VJP of one step, so it
+equals backpropagation through odeint's rk4 to rounding. Importing this module registers the
+engine with `torchfric.models.simulate.register_engine` (`torchfric.accel` imports it).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..models.arm import ArmModel
+from ..models.simulate import odeint_engine, register_engine, rk4_step
+from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, structure_key
+
+__all__ = ["rk4_chunk", "compiled_engine"]
+
+# Compiled rk4 chunks by (structure_key, direction): (the model they were made for, chunk).
+_RK4_CHUNKS: dict[tuple[str, str], tuple[ArmModel, object]] = {}
+
+
+def rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-untyped-def]
+    """`make_chunk` of `rk4_step`, compiled once per process and model *structure*
+    (`structure_key`: θ is an input, so the fitted models of successive passes or epochs share
+    it).
+
+    - ``"forward"``: ``chunk((x,), (u (C, ...), h (C,)), valid, (θ,)) -> ((x,), (states (C, ...),))``,
+      each step with its own held input and length.
+    - ``"backward"``: the discrete adjoint, run over the steps in reverse order:
+      ``chunk((λ, g_θ), (x_k (C, ...), u (C, ...), h (C,), g_k (C, ...)), valid, (θ,))``. With λ
+      the loss gradient with respect to the state after step k, one step gives
+      ``λ ← g_k + (∂x_{k+1}/∂x_k)ᵀ λ`` and ``g_θ ← g_θ + (∂x_{k+1}/∂θ)ᵀ λ`` (the VJP of
+      `rk4_step` by autograd), `g_k` being the loss's direct gradient with respect to x_k.
+    """
+    key = (structure_key(model), direction)
+    if key not in _RK4_CHUNKS:
+        one = _forward_step(model) if direction == "forward" else _adjoint_step(model)
+        # Its loops run over 2 states and a few parameters, like the fused EKF step's.
+        # Generated C first (`torchfric.accel.native`; a batch of B runs is B copies of the
+        # step in one function), the Inductor scan where that cannot serve a shape.
+        chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True)
+        _RK4_CHUNKS[key] = (model, chunk)
+    return _RK4_CHUNKS[key][1]
+
+
+def _forward_step(model: ArmModel):  # type: ignore[no-untyped-def]
+    """One rk4 step as a chunk function: ``(x, u, h, θ) -> ((x',), (x',))``."""
+
+    def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
+        x1 = rk4_step(model, x, u, h, *model.split(theta))
+        return (x1,), (x1,)
+
+    return one
+
+
+def _adjoint_step(model: ArmModel):  # type: ignore[no-untyped-def]
+    """One step of the discrete adjoint as a chunk function:
+    ``(λ, g_θ, x, u, h, g, θ) -> ((g + (∂x'/∂x)ᵀ λ, g_θ + (∂x'/∂θ)ᵀ λ), ())``."""
+
+    def one(lam: Tensor, g_theta: Tensor, x: Tensor, u: Tensor, h: Tensor, g: Tensor,
+            theta: Tensor):  # type: ignore[no-untyped-def]  # fmt: skip
+        def step(x_: Tensor, th: Tensor) -> Tensor:
+            return rk4_step(model, x_, u, h, *model.split(th))
+
+        _, pull = torch.func.vjp(step, x, theta)
+        d_x, d_theta = pull(lam)
+        return (g + d_x, g_theta + d_theta), ()
+
+    return one
+
+
+def _rk4_states(model: ArmModel, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor) -> Tensor:
+    """Every solver state ``(T+1, [B,] 2)`` from `x0` over the steps ``(us, hs)``; no gradient."""
+    (_,), (states,) = run_chunks(rk4_chunk(model), (x0.clone(),), (us, hs), (theta,))
+    return torch.cat([x0.unsqueeze(0), states])
+
+
+class _CompiledRK4(torch.autograd.Function):
+    """All solver states ``(T+1, [B,] 2)`` of rk4 from `x0` over the steps ``(us, hs)``, with
+    the exact gradient of that discrete map by a compiled reverse scan (`rk4_chunk`)."""
+
+    @staticmethod
+    def forward(ctx, theta: Tensor, x0: Tensor, us: Tensor, hs: Tensor, model: ArmModel) -> Tensor:  # type: ignore[no-untyped-def,override]
+        th = theta.detach()
+        states = _rk4_states(model, th, x0.detach(), us, hs)
+        ctx.model = model
+        ctx.save_for_backward(th, states, us, hs)
+        return states
+
+    @staticmethod
+    def backward(ctx, g_states: Tensor):  # type: ignore[no-untyped-def,override]
+        th, states, us, hs = ctx.saved_tensors
+        carry = (g_states[-1].clone(), torch.zeros_like(th))
+        xs = (states[:-1], us, hs, g_states[:-1])
+        (lam, g_theta), _ = run_chunks(
+            rk4_chunk(ctx.model, "backward"), carry, xs, (th,), reverse=True
+        )
+        return g_theta, lam, None, None, None
+
+
+def compiled_engine(
+    model: ArmModel,
+    t: Tensor,
+    u: Tensor,
+    x0: Tensor,
+    theta: Tensor,
+    *,
+    grid: Tensor,
+    substeps: int,
+    method: str,
+) -> Tensor:
+    """The "compiled" engine (`torchfric.models.simulate.Engine`): rk4 on `grid` (`substeps`
+    solver steps per sample) through `rk4_chunk`, differentiable in θ and x0 (`_CompiledRK4`)
+    when either needs a gradient; another `method` goes through `odeint_engine`."""
+    if method != "rk4":
+        return odeint_engine(model, t, u, x0, theta, grid=grid, substeps=substeps, method=method)
+    n = (grid.numel() - 1) // substeps + 1
+    hs = grid[1:] - grid[:-1]
+    us = u[:-1].repeat_interleave(substeps, dim=0)  # u_k held over its interval's sub-steps
+    if torch.is_grad_enabled() and (theta.requires_grad or x0.requires_grad):
+        states = _CompiledRK4.apply(theta, x0, us, hs, model)
+    else:
+        with torch.no_grad():
+            states = _rk4_states(model, theta.detach(), x0.detach(), us, hs)
+    return states[::substeps][:n]
+
+
+register_engine("compiled", compiled_engine)
