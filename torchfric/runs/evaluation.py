@@ -1,0 +1,91 @@
+"""Judging a run's model: open-loop scores, the warnings about a doubtful result, provenance."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..data import Experiment
+from ..estimators.metrics import SimulationScore, score_simulation
+from ..models.arm import ArmModel
+from .checkpoint import read_checkpoint
+from .config import Config
+
+__all__ = ["evaluate_model", "result_warnings", "provenance"]
+
+
+def evaluate_model(
+    model: ArmModel, exps: list[Experiment], cfg: Config
+) -> dict[str, SimulationScore]:
+    """Open-loop simulation scores of `model` on each record, by record name."""
+    out = {}
+    for e in exps:
+        out[e.name] = score_simulation(
+            model,
+            e,
+            method=cfg.simulation.method,
+            substeps=cfg.simulation.substeps,
+            # The fast path scores through the compiled twin of odeint's rk4 (same steps).
+            engine="compiled" if cfg.estimator.compile else "odeint",
+        )
+    return out
+
+
+def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
+    """A parameter at the search bound, or no inertia: the model is not physical."""
+    theta = final.get_theta().detach()
+    bound = cfg.estimator.theta_bound
+    at_bound = [
+        n for n, v in zip(final.theta_names, theta.tolist(), strict=True) if abs(v) >= 0.5 * bound
+    ]
+    if at_bound or not inertia > 1e-12:
+        return [
+            f"parameter(s) {', '.join(at_bound) or 'inertia'} at a bound (|θ| near "
+            f"estimator.theta_bound = {bound:g}, or inertia ≈ 0): the model is not physical"
+        ]
+    return []
+
+
+def result_warnings(
+    cfg: Config, final: ArmModel, metrics: dict[str, Any], init_kind: str
+) -> list[str]:
+    """Plain warnings about a result that is almost certainly wrong (`metrics.json` "warnings")."""
+    out = []
+    inertia, start = metrics["inertia"], metrics.get("initial_inertia")
+    source = "pre-fit" if init_kind == "prefit" else "initial value"
+    if start and inertia > 0 and max(inertia / start, start / inertia) > 3.0:
+        out.append(
+            f"inertia {inertia:.4g} is {inertia / start:.3g}× the {source}'s {start:.4g}: the "
+            "estimate moved far from what the data's inverse dynamics say; check model.c_m, the "
+            "units of t and q, and the filter's tuning (estimator.r, estimator.p0_theta)"
+        )
+    out += _bound_warnings(cfg, final, inertia)
+    for group in ("validation", "test"):
+        for name, m in metrics.get(group, {}).items():
+            fit = m.get("fit_q")
+            if fit is None or not fit == fit or fit < 0.0:
+                out.append(
+                    f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
+                    "worse than a constant); the model does not simulate this record"
+                )
+    if (
+        cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes
+        and metrics.get("converged") is False
+        and metrics.get("passes", 0) >= cfg.estimator.passes
+    ):
+        out.append(
+            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) without "
+            f"converging to estimator.tolerance = {cfg.estimator.tolerance:g}; raise "
+            "estimator.passes or check the tuning"
+        )
+    return out
+
+
+def provenance(cfg: Config, init_kind: str) -> str:
+    """Which estimator(s) produced the model: this run's, after a warm start's chain."""
+    method = cfg.estimator.method
+    if init_kind.startswith("checkpoint:"):
+        raw = read_checkpoint(init_kind[len("checkpoint:") :])
+        before = raw.get("metrics", {}).get("estimator") or raw.get("estimator", {}).get("method")
+        if before:
+            return f"{before}+{method}"
+    return method

@@ -1,0 +1,205 @@
+"""The ``[data]``, ``[model]`` and ``[simulation]`` sections of a run config.
+
+Each is a frozen dataclass whose fields are its TOML keys: it owns its defaults and checks its
+own values on construction (`__post_init__`, with `torchfric.runs.schema.Check`), so a section
+that exists is valid. The ``[estimator]`` section is `torchfric.runs.estimator_config`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from ..errors import TorchfricError
+from ..models.friction import FRICTIONS
+from ..models.simulate import SOLVERS
+from .schema import (
+    COLUMN_NAMES,
+    POSITION_UNITS,
+    RIG_PREFIX,
+    RIG_VALIDATION,
+    VELOCITY_SOURCES,
+    Check,
+    TableSection,
+    show,
+    suggest,
+)
+
+__all__ = ["DataConfig", "ModelConfig", "SimulationConfig"]
+
+
+@dataclass(frozen=True)
+class DataConfig(TableSection):
+    """``[data]``: measurement files and how to read them.
+
+    Attributes:
+        train: identification records (paths or ``"rig:NAME"``); all are used in each pass.
+        validation: records for the validation FIT after each pass and in ``metrics.json``;
+            the default is ``["rig:validation"]`` for rig data and none for a user's files.
+        test: extra held-out records evaluated once at the end.
+        columns: our names (t, u, q, qdot) → names in the file, e.g. ``{u = "vir", q = "qm"}``.
+        time_step: sample period [s] for files without a t column (checked against t otherwise).
+        velocity: q̇ measurement for the estimators: "highpass" (the paper's causal
+            differentiator), "zero_phase" (off-line) or "measured" (the file's qdot column).
+        velocity_cutoff_hz: cut-off of the reconstruction; ``None`` = the method's default.
+        position_unit: unit of q in the files (`POSITION_UNITS`); the runner converts to SI.
+        start, stop: keep samples ``start <= k < stop`` of every file (``stop=None``: to the end).
+        input_delay: whole samples by which the input acts late (`Experiment.delay_input`:
+            sample k is driven by ``u[k − input_delay]``; the first ones are dropped). 0 = none.
+    """
+
+    train: tuple[str, ...] = (RIG_PREFIX + "identification",)
+    validation: tuple[str, ...] | None = None
+    test: tuple[str, ...] = ()
+    columns: dict[str, str] = field(default_factory=dict)
+    time_step: float | None = None
+    velocity: str = "highpass"
+    velocity_cutoff_hz: float | None = None
+    position_unit: str = "rad"
+    start: int = 0
+    stop: int | None = None
+    input_delay: int = 0
+
+    PATH_KEYS: ClassVar[tuple[str, ...]] = ("train", "validation", "test")
+
+    def __post_init__(self) -> None:
+        c = Check(self, "data")
+        c.paths("train", nonempty=True)
+        if self.validation is None:
+            c.set("validation", RIG_VALIDATION if self.rig_only else ())
+        c.paths("validation", nonempty=False)
+        c.paths("test", nonempty=False)
+        if not self.rig_only:
+            for key in ("validation", "test"):
+                rig = [p for p in getattr(self, key) if p.startswith(RIG_PREFIX)]
+                if rig:
+                    raise TorchfricError(
+                        f"data.{key} = {show(list(getattr(self, key)))} names the built-in "
+                        f"rig's data ({rig[0]}) but data.train is your own data; the rig's "
+                        f"records do not measure your machine: give your own files, or "
+                        f"remove data.{key} (--set data.{key}=[])"
+                    )
+        cols = self.columns
+        if not isinstance(cols, Mapping) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in cols.items()
+        ):
+            c.type_error("columns", cols, "a table of column names", {"u": "vir", "q": "qm"})
+        for k, v in cols.items():
+            if k not in COLUMN_NAMES:
+                raise TorchfricError(
+                    f'unknown key "data.columns.{k}"{suggest(k, COLUMN_NAMES)}; allowed keys'
+                    f" in [data.columns]: {', '.join(COLUMN_NAMES)} (each mapped to a name in the"
+                    " file)"
+                )
+            if not v:
+                raise TorchfricError(
+                    f"data.columns.{k} is empty; give the column's name in the file"
+                )
+        c.set("columns", dict(cols))
+        c.number("time_step", gt=0.0, optional=True, example=0.001)
+        c.string("velocity", choices=VELOCITY_SOURCES)
+        c.number("velocity_cutoff_hz", gt=0.0, optional=True, example=200.0)
+        c.string("position_unit", choices=tuple(POSITION_UNITS))
+        c.integer("start", ge=0)
+        c.integer("stop", ge=1, optional=True, example=10000)
+        if self.stop is not None and self.stop <= self.start:
+            c.range_error("stop", self.stop, f"an integer > data.start = {self.start}, or omit it")
+        c.integer("input_delay", ge=0)
+
+    @property
+    def rig_only(self) -> bool:
+        """True when every identification record is the built-in rig's (``"rig:NAME"``)."""
+        train = (self.train,) if isinstance(self.train, str) else self.train
+        return all(isinstance(p, str) and p.startswith(RIG_PREFIX) for p in train)
+
+
+@dataclass(frozen=True)
+class ModelConfig(TableSection):
+    """``[model]``: the grey-box model and its initial guesses.
+
+    Attributes:
+        friction: black-box friction, a `torchfric.friction.FRICTIONS` name.
+        size: neurons (tanh) or local models (polytopic, odd); ignored by the baselines.
+        c_m: motor constant, torque (or force) per unit of input (known unless
+            `estimate_c_m`). Required with a user's data; ``None`` takes the rig's 16 for rig
+            data (`Config` resolves it).
+        inertia, viscous: initial guesses of M and b (with ``init = "config"``, or as the
+            fallback of the pre-fit). For "polytopic" the runner ignores `viscous`: the paper's
+            polytopic model carries its own slopes and has no separate b.
+        offset: ``None`` = no constant offset term; a number enables it with that initial guess.
+        gravity: ``None`` = no ``g_c sin q`` term; a number (> 0) enables it.
+        asymmetric: ``None`` = no even viscous term; a number enables ``a |q̇|`` with that
+            initial guess (direction-dependent viscous slopes b ± a, `torchfric.arm.ArmModel`).
+        estimate_c_m: put c_m in θ.
+        log_positive: estimate positive parameters (M, b, variances…) as logarithms.
+        velocity_scale, torque_scale: scales for the friction's initial shape; ``None`` = from
+            the data.
+        init: "prefit" (least-squares pre-fit on the training data), "config" (the values above)
+            or the path of a checkpoint to warm-start from (stored absolute).
+    """
+
+    friction: str = "tanh"
+    size: int = 3
+    c_m: float | None = None
+    inertia: float = 0.03
+    viscous: float = 0.01
+    offset: float | None = None
+    gravity: float | None = None
+    estimate_c_m: bool = False
+    log_positive: bool = True
+    velocity_scale: float | None = None
+    torque_scale: float | None = None
+    init: str = "prefit"
+    asymmetric: float | None = None
+
+    PATH_KEYS: ClassVar[tuple[str, ...]] = ("init",)
+
+    def __post_init__(self) -> None:
+        c = Check(self, "model")
+        c.string("friction", choices=tuple(FRICTIONS))
+        c.integer("size", ge=1)
+        if self.friction == "polytopic" and self.size % 2 == 0:
+            raise TorchfricError(
+                f'model.size = {self.size} is not allowed for model.friction = "polytopic": '
+                f"it needs an odd number of local models (1, 3, 5, ...); use {self.size - 1} or "
+                f"{self.size + 1}"
+            )
+        c.number("c_m", gt=0.0, optional=True, example=16.0)
+        c.number("inertia", gt=0.0)
+        c.number("viscous", ge=0.0)
+        c.number("offset", optional=True, example=0.0)
+        c.number("gravity", gt=0.0, optional=True, example=0.1)
+        c.number("asymmetric", optional=True, example=0.0)
+        c.boolean("estimate_c_m")
+        c.boolean("log_positive")
+        if self.viscous == 0.0 and self.log_positive and self.friction != "polytopic":
+            raise TorchfricError(
+                "model.viscous = 0.0 cannot be estimated with model.log_positive = true (b is "
+                "stored as log b); give a small positive guess such as 1e-4, or set "
+                "model.log_positive = false"
+            )
+        c.number("velocity_scale", gt=0.0, optional=True, example=10.0)
+        c.number("torque_scale", gt=0.0, optional=True, example=1.0)
+        c.string("init")
+
+
+@dataclass(frozen=True)
+class SimulationConfig(TableSection):
+    """``[simulation]``: open-loop simulation for validation (`torchfric.simulate`).
+
+    Attributes:
+        method: fixed-grid solver, a `torchfric.simulate.SOLVERS` name.
+        substeps: solver steps per sample interval, or "auto" (from the model's stiffness).
+    """
+
+    method: str = "rk4"
+    substeps: int | str = "auto"
+
+    def __post_init__(self) -> None:
+        c = Check(self, "simulation")
+        c.string("method", choices=tuple(SOLVERS))
+        if self.substeps != "auto":
+            if isinstance(self.substeps, bool) or not isinstance(self.substeps, int):
+                c.type_error("substeps", self.substeps, '"auto" or an integer >= 1', 4)
+            c.integer("substeps", ge=1)
