@@ -23,11 +23,17 @@ import time
 import torch
 
 from torchfric import ArmModel, EKFTuning, load_checkpoint, make_experiment, make_friction
-from torchfric.runs.config import Config
-from torchfric.estimators.ekf import EKFState, make_propagator, make_step, measurement_matrix, run_pass
-from torchfric.models.friction import StribeckFriction
-from torchfric.estimators.metrics import fit_percent, friction_curve_error, score_simulation
+from torchfric.app.config import Config
 from torchfric.data.rig import RigParameters, rig_experiment, simulate_rig
+from torchfric.estimators.ekf import (
+    EKFState,
+    make_propagator,
+    make_step,
+    measurement_matrix,
+    run_pass,
+)
+from torchfric.estimators.metrics import fit_percent, friction_curve_error, score_simulation
+from torchfric.models.friction import StribeckFriction
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -180,7 +186,7 @@ def main() -> None:
                 raw = torch.load(ckpt, weights_only=True)
                 models[name] = (load_checkpoint(ckpt), raw["metrics"])
             else:
-                from torchfric.runs.runner import train
+                from torchfric.app.runner import train
 
                 cfg = Config.load(
                     ROOT / "experiments" / "configs" / f"{name}.toml", ["data.test=[]"]

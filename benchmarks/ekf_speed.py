@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from torchfric import ArmModel, make_experiment, make_friction
+from torchfric.data.rig import rig_experiment
 from torchfric.estimators.ekf import (
     EKFState,
     make_propagator,
@@ -54,7 +55,6 @@ from torchfric.estimators.ekf import (
 from torchfric.estimators.ensemble import make_masked_step, random_thetas
 from torchfric.estimators.identify import EKFTuning, identify_ekf
 from torchfric.estimators.prefit import prefit
-from torchfric.data.rig import rig_experiment
 
 F64 = torch.float64
 

@@ -36,13 +36,13 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric import EKFTuning, identify_ekf, identify_output_error
-from torchfric.runs.config import Config
-from torchfric.estimators.ensemble import random_thetas
+from torchfric.app.config import Config
+from torchfric.app.runner import initial_model, load_data
+from torchfric.data.rig import RigParameters
 from torchfric.errors import TorchfricError
+from torchfric.estimators.ensemble import random_thetas
 from torchfric.estimators.metrics import friction_curve_error, score_simulation
 from torchfric.estimators.output_error import OETuning
-from torchfric.data.rig import RigParameters
-from torchfric.runs.runner import initial_model, load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

@@ -35,12 +35,12 @@ import time
 import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
-from torchfric.runs.config import Config
+from torchfric.app.config import Config
+from torchfric.app.runner import initial_model, load_data
+from torchfric.data.rig import RigParameters
 from torchfric.estimators.ekf import EKFState, FilterFailure, make_propagator, make_step, run_pass
 from torchfric.estimators.identify import _measurements
 from torchfric.estimators.metrics import friction_curve_error, score_simulation
-from torchfric.data.rig import RigParameters
-from torchfric.runs.runner import initial_model, load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 F64 = torch.float64

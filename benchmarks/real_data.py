@@ -37,10 +37,10 @@ from typing import Any
 import torch
 
 from torchfric import ArmModel, load_checkpoint, load_experiment
-from torchfric.runs.checkpoint import read_checkpoint
-from torchfric.runs.config import Config
-from torchfric.models.friction import CoulombFriction
+from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.config import Config
 from torchfric.estimators.metrics import rms, score_benchmark, score_simulation
+from torchfric.models.friction import CoulombFriction
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -222,7 +222,7 @@ def train_all(sets: list[str], *, update: bool = False) -> dict[str, pathlib.Pat
     With `update`, each final checkpoint is also copied over the committed
     ``checkpoints/NAME.pt`` (the explicit ``--checkpoint`` step).
     """
-    from torchfric.runs.runner import train
+    from torchfric.app.runner import train
 
     out = {}
     for key in sets:

@@ -46,12 +46,12 @@ import time
 import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
-from torchfric.runs.config import Config
+from torchfric.app.config import Config
+from torchfric.app.runner import config_model, load_data
+from torchfric.data.rig import RigParameters
 from torchfric.estimators.ensemble import DIVERGED, identify_ekf_ensemble, random_thetas
 from torchfric.estimators.metrics import friction_curve_error
 from torchfric.estimators.prefit import prefit
-from torchfric.data.rig import RigParameters
-from torchfric.runs.runner import config_model, load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCALES = (0.1, 1.0, 10.0)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 torch.set_default_dtype(torch.float64)
-torch.set_num_threads(1)  # tiny tensors: threads only add overhead (see torchfric.runs.cli.main)
+torch.set_num_threads(1)  # tiny tensors: threads only add overhead (see torchfric.app.cli.main)
 
 SHARED_DATA = pathlib.Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchfric.runs.checkpoint import read_checkpoint
-from torchfric.runs.cli import main
+from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.cli import main
 
 SHORT = [
     "--set", "data.stop=1500",
@@ -267,10 +267,10 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     import signal
     import time
 
+    from torchfric.app.config import Config
+    from torchfric.app.runner import load_data
     from torchfric.estimators.identify import PassRecord, identify_ekf
     from torchfric.models.arm import ArmModel
-    from torchfric.runs.config import Config
-    from torchfric.runs.runner import load_data
 
     cfg = _config(tmp_path, name="short")  # same settings as the fixture's run
     run = tmp_path / "runs" / "short"

@@ -8,10 +8,7 @@ import pathlib
 
 import pytest
 
-from torchfric.errors import TorchfricError
-from torchfric.estimators.identify import EKFTuning
-from torchfric.models.friction import FRICTIONS
-from torchfric.runs.config import (
+from torchfric.app.config import (
     Config,
     DataConfig,
     EstimatorConfig,
@@ -19,6 +16,9 @@ from torchfric.runs.config import (
     SimulationConfig,
     to_toml,
 )
+from torchfric.errors import TorchfricError
+from torchfric.estimators.identify import EKFTuning
+from torchfric.models.friction import FRICTIONS
 
 
 def write(folder: pathlib.Path, text: str, name: str = "run.toml") -> pathlib.Path:

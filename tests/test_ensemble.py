@@ -290,8 +290,8 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     import shutil
     import textwrap
 
-    from torchfric.runs.checkpoint import read_checkpoint
-    from torchfric.runs.cli import main
+    from torchfric.app.checkpoint import read_checkpoint
+    from torchfric.app.cli import main
 
     cfg = tmp_path / "ens.toml"
     cfg.write_text(
@@ -357,7 +357,7 @@ def test_the_default_config_runs_one_start_under_nine_tunings() -> None:
     """Without ensemble keys, `torchfric train` runs the initial θ under Q and R ×/÷ 10 (issue 9:
     no trial-and-error tuning); `ensemble = 0` is the single filter; output error ignores the
     default but refuses a changed ensemble key."""
-    from torchfric.runs.config import Config
+    from torchfric.app.config import Config
 
     est = Config.loads("").estimator
     spec = est.ensemble_spec()

@@ -24,9 +24,9 @@ ALLOWED = {
     "data": {"leaf"},
     "accel": {"leaf", "models"},
     "estimators": {"leaf", "models", "data", "accel"},
-    "runs": {"leaf", "models", "data", "accel", "estimators"},
+    "app": {"leaf", "models", "data", "accel", "estimators"},
     "face": {"leaf", "models", "data", "estimators"},
-    "main": {"runs"},
+    "main": {"app"},
 }
 
 
@@ -86,7 +86,7 @@ def _imports(module: str) -> list[tuple[str, str, int]]:
 
 def test_the_package_has_its_subpackages():
     subpackages = {p.name for p in ROOT.iterdir() if (p / "__init__.py").exists()}
-    assert {"models", "data", "estimators", "accel", "runs"} <= subpackages
+    assert {"models", "data", "estimators", "accel", "app"} <= subpackages
 
 
 def test_imports_point_one_way():
@@ -175,13 +175,13 @@ def test_the_public_face_lists_what_it_offers():
     assert "load_checkpoint" in torchfric.__all__
 
 
-def test_importing_torchfric_does_not_import_the_runs_layer():
+def test_importing_torchfric_does_not_import_the_app_layer():
     import subprocess
     import sys
 
     script = (
         "import sys, torchfric; "
-        "print(sorted(m for m in sys.modules if m.startswith('torchfric.runs.')))"
+        "print(sorted(m for m in sys.modules if m.startswith('torchfric.app.')))"
     )
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -17,13 +17,13 @@ import scipy.io
 import torch
 
 from torchfric import ArmModel, OddTanhFriction, load_experiment
+from torchfric.app.config import Config
+from torchfric.app.runner import load_data
 from torchfric.data import Experiment
 from torchfric.errors import TorchfricError
 from torchfric.estimators.metrics import rms, score_benchmark, window_initial_state
 from torchfric.models.friction import CoulombFriction
 from torchfric.models.simulate import simulate
-from torchfric.runs.config import Config
-from torchfric.runs.runner import load_data
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "experiments" / "configs"
@@ -257,8 +257,8 @@ def test_asymmetric_term_is_the_even_viscous_part_only() -> None:
 
 
 def test_asymmetric_config_and_prefit_skeleton() -> None:
+    from torchfric.app.runner import config_model
     from torchfric.estimators.prefit import _linear_skeleton
-    from torchfric.runs.runner import config_model
 
     cfg = Config.loads('[model]\nfriction = "tanh"\noffset = 0.0\nasymmetric = 0.0\nc_m = 1.0\n')
     assert cfg.model.asymmetric == 0.0

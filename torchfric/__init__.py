@@ -53,9 +53,9 @@ from .models import (
 )
 from .version import __version__
 
-# The runs layer (config files, checkpoints, the export) sits above everything else and is
+# The app layer (config files, checkpoints, the export) sits above everything else and is
 # imported only by the CLI; the public face reaches these few names lazily, on first use.
-_FROM_RUNS = {
+_FROM_APP = {
     "Config": "config",
     "load_checkpoint": "checkpoint",
     "read_checkpoint": "checkpoint",
@@ -65,17 +65,17 @@ _FROM_RUNS = {
 
 
 def __getattr__(name: str):  # type: ignore[no-untyped-def]
-    if name in _FROM_RUNS:
+    if name in _FROM_APP:
         import importlib
 
-        value = getattr(importlib.import_module(f".runs.{_FROM_RUNS[name]}", __name__), name)
+        value = getattr(importlib.import_module(f".app.{_FROM_APP[name]}", __name__), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'torchfric' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_FROM_RUNS))
+    return sorted(set(globals()) | set(_FROM_APP))
 
 
 __all__ = [

@@ -7,7 +7,7 @@ Modules: `experiment` (the record and its validation), `readers` (load_experimen
 experiments and their files), `rig_model` (parameters and simulation), `excitation` (inputs).
 
 Everything here depends only on numpy/torch and torchfric's leaf modules (errors, files,
-resources); the estimators and the runs layer import from here, never the other way.
+resources); the estimators and the app layer import from here, never the other way.
 """
 
 from .checks import data_warnings

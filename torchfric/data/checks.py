@@ -1,7 +1,7 @@
 """Data warnings: plain sentences about records that would almost certainly give a wrong model.
 
 `data_warnings` flags an input that was clipped or saturated and a time column that looks like
-milliseconds in a seconds column. It only reads the record; the runs layer prints the warnings.
+milliseconds in a seconds column. It only reads the record; the app layer prints the warnings.
 """
 
 from __future__ import annotations

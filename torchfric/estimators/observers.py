@@ -1,7 +1,7 @@
 """One observer protocol for every estimator (after PyTorch Lightning's single ``Callback``).
 
 An estimator is handed one `Callback` and calls its named hooks; every hook has a default that
-does nothing, so an observer overrides only what it watches. The runs layer builds its
+does nothing, so an observer overrides only what it watches. The app layer builds its
 TensorBoard logging, progress display and snapshots as separate observers and hands them over
 together as a `CallbackList`.
 

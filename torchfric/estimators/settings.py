@@ -1,12 +1,12 @@
 """The estimators' settings: one frozen dataclass per estimator, the same one the config's
-sections build (`torchfric.runs.config`) and the Python API takes.
+sections build (`torchfric.app.config`) and the Python API takes.
 
 - `EKFTuning`: the iterative augmented-state EKF (`identify_ekf`, and each ensemble member);
 - `EnsembleSpec`: which members an EKF ensemble holds (`identify_ekf_ensemble`);
 - `OETuning`: output-error training (`identify_output_error`).
 
 Each class holds its defaults and validates itself against a model (`check(k)`); nothing else in
-torchfric restates a default. A run's ``[estimator]`` section (`torchfric.runs.config`) holds
+torchfric restates a default. A run's ``[estimator]`` section (`torchfric.app.config`) holds
 these very objects, so the Python API's defaults are the CLI's: the compiled paths are on in
 both, and a run without ensemble keys runs `RUN_ENSEMBLE`.
 """

@@ -8,7 +8,7 @@
 - `simulate`: open-loop simulation on the sample grid with a zero-order hold, by torchdiffeq
   or by any engine registered in its `ENGINES` table (`torchfric.accel` registers "compiled").
 
-Nothing here imports the data, estimators, accel or runs layers.
+Nothing here imports the data, estimators, accel or app layers.
 """
 
 from .arm import ArmModel, arm_field, arm_friction

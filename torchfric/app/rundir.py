@@ -23,11 +23,9 @@ holds NaN or Infinity: such a value becomes ``null`` and its dotted path is list
 from __future__ import annotations
 
 import json
-import math
 import os
 import pathlib
 import re
-import secrets
 import shutil
 import socket
 import time

@@ -1,8 +1,8 @@
 """The ``[data]``, ``[model]`` and ``[simulation]`` sections of a run config.
 
 Each is a frozen dataclass whose fields are its TOML keys: it owns its defaults and checks its
-own values on construction (`__post_init__`, with `torchfric.runs.schema.Check`), so a section
-that exists is valid. The ``[estimator]`` section is `torchfric.runs.estimator_config`.
+own values on construction (`__post_init__`, with `torchfric.app.schema.Check`), so a section
+that exists is valid. The ``[estimator]`` section is `torchfric.app.estimator_config`.
 """
 
 from __future__ import annotations

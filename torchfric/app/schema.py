@@ -3,7 +3,7 @@ one-line messages (dotted key, value, what is allowed, the fix) that a bad value
 
 `Check` checks and normalises the fields of one section in its `__post_init__` (an int becomes a
 float where a number is expected, an array a tuple); `suggest` adds a "did you mean" to a
-misspelt name; `TableSection` is what every section provides to `torchfric.runs.config`.
+misspelt name; `TableSection` is what every section provides to `torchfric.app.config`.
 """
 
 from __future__ import annotations
@@ -228,7 +228,7 @@ class Check:
 
 
 class TableSection:
-    """What a config section provides to `torchfric.runs.config`: its TOML keys, building it from
+    """What a config section provides to `torchfric.app.config`: its TOML keys, building it from
     its table and writing it back. This base serves the sections whose keys are their own
     dataclass fields; `EstimatorConfig` routes its flat keys into the estimators' settings.
     """

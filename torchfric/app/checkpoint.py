@@ -38,10 +38,10 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from ..models.arm import ArmModel
 from ..errors import TorchfricError
-from ..version import __version__
 from ..files import atomic_write_bytes
+from ..models.arm import ArmModel
+from ..version import __version__
 
 if TYPE_CHECKING:
     from .config import Config

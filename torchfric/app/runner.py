@@ -1,9 +1,9 @@
 """Runs from a config: data → initial θ → estimator → checkpoint, metrics and TensorBoard.
 
 The library core (`identify_ekf`, `prefit`, …) does no I/O; this module hands the estimator
-the run's observers (`torchfric.runs.observers`, `torchfric.runs.snapshots`) as one
+the run's observers (`torchfric.app.observers`, `torchfric.app.snapshots`) as one
 `CallbackList` and writes the final checkpoint and metrics. Loading the data and building the
-initial model are in `torchfric.runs.loading`; scoring the result in `torchfric.runs.evaluation`.
+initial model are in `torchfric.app.loading`; scoring the result in `torchfric.app.evaluation`.
 """
 
 from __future__ import annotations

@@ -33,10 +33,10 @@ Rules the loader applies (`Config.load`):
 `Config.to_toml` writes the resolved config (``None`` values are omitted) and
 ``Config.loads(config.to_toml()) == config``.
 
-Modules: `torchfric.runs.schema` (vocabulary, `Check`, did-you-mean), `torchfric.runs.sections`
-(``[data]``, ``[model]``, ``[simulation]``), `torchfric.runs.estimator_config` (``[estimator]``,
+Modules: `torchfric.app.schema` (vocabulary, `Check`, did-you-mean), `torchfric.app.sections`
+(``[data]``, ``[model]``, ``[simulation]``), `torchfric.app.estimator_config` (``[estimator]``,
 which holds the estimators' own settings dataclasses and their defaults),
-`torchfric.runs.toml_io` (the TOML writer, ``--set`` values); this module: `Config`, loading,
+`torchfric.app.toml_io` (the TOML writer, ``--set`` values); this module: `Config`, loading,
 ``--set`` overrides and `SCHEMA`. Every name is importable from here.
 """
 

@@ -34,9 +34,9 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from ..models.arm import ArmModel, arm_field, arm_friction
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes
+from ..models.arm import ArmModel, arm_field, arm_friction
 from ..models.simulate import SOLVERS
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]

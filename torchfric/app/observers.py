@@ -6,7 +6,7 @@ A run hands its estimator (single EKF, ensemble or output error) a `CallbackList
   which the observers after it read;
 - `TensorBoardLog`: parameters, filter diagnostics, validation FITs and figures per pass/epoch;
 - `ProgressLines`: the progress lines (``say``) in and after each pass or epoch;
-- `torchfric.runs.snapshots.Snapshots`: the resumable per-pass snapshots.
+- `torchfric.app.snapshots.Snapshots`: the resumable per-pass snapshots.
 
 They run in that order, so each pass's scores are there before they are logged, said or saved.
 """

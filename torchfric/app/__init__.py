@@ -1,4 +1,6 @@
-"""Runs: what turns a config file into a checkpoint, and the commands around it.
+"""The application layer: what turns a config file into a run and a checkpoint, and the
+commands around it (named ``app``, not ``runs``: ``runs/`` is where run directories go, and
+the folder name that TensorBoard and many ``.gitignore`` files treat as generated output).
 
 - `config` (with `schema`, `sections`, `estimator_config`, `toml_io`): the TOML schema, validated
   into frozen dataclasses; the ``[estimator]`` section holds the estimators' own settings objects;
