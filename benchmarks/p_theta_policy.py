@@ -39,8 +39,8 @@ from torchfric.app.config import Config
 from torchfric.app.runner import initial_model, load_data
 from torchfric.data.rig import RigParameters
 from torchfric.estimators.ekf import EKFState, FilterFailure, make_propagator, make_step, run_pass
-from torchfric.estimators.identify import _measurements
 from torchfric.estimators.metrics import friction_curve_error, score_simulation
+from torchfric.estimators.passes import measurements
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 F64 = torch.float64
@@ -86,7 +86,7 @@ def run(kind: str, policy: str, scaling: str, passes: int, cache: dict) -> dict:
         ll = 0.0
         try:
             for exp in train:
-                y = _measurements(exp, tuning.measure)
+                y = measurements(exp, tuning.measure)
                 P = torch.zeros(2 + k, 2 + k, dtype=F64)
                 P[:2, :2] = P0_xx
                 P[2:, 2:] = P_theta

@@ -23,10 +23,10 @@ from torchfric.estimators.ensemble import (
     make_batched_step,
     member_grid,
     random_thetas,
-    simulate_members,
 )
 from torchfric.estimators.identify import EKFTuning, identify_ekf
 from torchfric.estimators.metrics import score_simulation
+from torchfric.estimators.selection import simulate_members
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import OddTanhFriction, PolytopicFriction
 from torchfric.models.simulate import auto_substeps, simulate

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from ..accel import CHUNK, Step, chunk_options, compile_with_fallback, iter_chunks, make_chunk
+from ..accel import CHUNK, Step, chunk_options, compile_step, compile_with_fallback, iter_chunks
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
@@ -53,7 +53,7 @@ from .passes import (
     measured_data,
     run_passes,
 )
-from .selection import select_by_fit, simulate_members
+from .selection import select_by_fit
 from .settings import EKFTuning, EnsembleSpec
 
 __all__ = [
@@ -66,7 +66,6 @@ __all__ = [
     "make_batched_step",
     "make_masked_step",
     "identify_ekf_ensemble",
-    "simulate_members",
 ]
 
 
@@ -143,7 +142,7 @@ def make_masked_step(
     diagnostics; a member whose step is unhealthy keeps its last belief, records sample `j`
     (a 0-d tensor) in `fail_at` and drops out of `good`.
 
-    Compiled, it also filters `chunk` samples per call (`Step.chunk`, `torchfric.ekf.make_chunk`):
+    Compiled (`torchfric.accel.compile_step`), it also filters `chunk` samples per call (`Step.chunk`):
     ``chunk((x, P, good, fail_at, sum_e2, sum_nis, loglik), (j (C,), u (C,), y (C, m)),
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
@@ -176,15 +175,10 @@ def make_masked_step(
 
     if not compile:
         return Step(masked)
-
-    def one(*args: Tensor):  # type: ignore[no-untyped-def]
-        return masked(*args), ()
-
-    options = chunk_options(mm)
-    # Native path: every carry has the member axis, and of the constants Q and R do.
-    scan = make_chunk(one, options=options, native=native, members=True,
-                      member_consts=(False, True, False, True, False))  # fmt: skip
-    return Step(masked, compile_with_fallback(masked), scan, chunk)
+    # All seven outputs are carried from sample to sample. Native path: every carry has the
+    # member axis, and of the constants Q and R do.
+    return compile_step(masked, carry=7, size=chunk, options=chunk_options(mm), native=native,
+                        members=True, member_consts=(False, True, False, True, False))  # fmt: skip
 
 
 def _keep_good(

@@ -30,7 +30,6 @@ from .passes import (
     measured_data,
     run_passes,
 )
-from .passes import measurements as _measurements  # noqa: F401  (benchmarks import this name)
 from .settings import EKFTuning
 
 __all__ = ["EKFTuning", "PassRecord", "EKFResult", "EKFCallback", "identify_ekf"]
