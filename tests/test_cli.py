@@ -251,6 +251,36 @@ def test_module_entry_point_help() -> None:
     assert "--resume" in out.stdout and "--set" in out.stdout
 
 
+@pytest.mark.parametrize(
+    ("argv", "status", "says"),
+    [
+        (["--help"], 0, "usage: torchfric"),
+        (["train", "--help"], 0, "--resume"),
+        (["--version"], 0, "torchfric "),
+        (["train"], 2, "the following arguments are required: config"),
+        (["frobnicate"], 2, "invalid choice: 'frobnicate'"),
+    ],
+)
+def test_help_version_and_argument_errors_answer_without_torch(argv, status, says) -> None:
+    """What the parser answers alone never imports torch (the command answers at once)."""
+    script = (
+        "import sys\nfrom torchfric.app.cli import main\n"
+        "try:\n    main(sys.argv[1:])\nexcept SystemExit as stop:\n    code = stop.code\n"
+        "sys.stderr.write(f'status {code} torch {\"torch\" in sys.modules}\\n')"
+    )
+    out = subprocess.run([sys.executable, "-c", script, *argv], capture_output=True, text=True)
+    assert says in out.stdout + out.stderr
+    assert f"status {status} torch False" in out.stderr
+
+
+def test_version_is_the_installed_packages() -> None:
+    from torchfric import __version__
+
+    out = subprocess.run([sys.executable, "-m", "torchfric", "--version"], capture_output=True,
+                         text=True, check=True)  # fmt: skip
+    assert out.stdout.strip() == f"torchfric {__version__}"
+
+
 def test_killed_run_leaves_loadable_snapshots_and_resumes(
     trained: dict[str, pathlib.Path], tmp_path: pathlib.Path
 ) -> None:

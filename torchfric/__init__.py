@@ -8,74 +8,120 @@ Public API (the CLI is a thin layer over it)::
     arm = torchfric.load_checkpoint("checkpoints/arm_tanh_ekf.pt")
 """
 
-from .data import (
-    Experiment,
-    load_experiment,
-    make_experiment,
-    reconstruct_velocity,
-    save_csv,
-)
-from .errors import DivergenceError, TorchfricError
-from .estimators import (
-    Callback,
-    EKFCallback,
-    EKFResult,
-    EKFState,
-    EKFTuning,
-    EnsembleResult,
-    EnsembleSpec,
-    Innovation,
-    OECallback,
-    OEResult,
-    OETuning,
-    PassRecord,
-    PrefitResult,
-    fit_percent,
-    friction_band,
-    identify_ekf,
-    identify_ekf_ensemble,
-    identify_output_error,
-    predict,
-    prefit,
-    score_simulation,
-    update,
-)
-from .models import (
-    FRICTIONS,
-    ArmModel,
-    CoulombFriction,
-    Friction,
-    OddTanhFriction,
-    PolytopicFriction,
-    StribeckFriction,
-    make_friction,
-    simulate,
-)
+from typing import TYPE_CHECKING
+
 from .version import __version__
 
-# The app layer (config files, checkpoints, the export) sits above everything else and is
-# imported only by the CLI; the public face reaches these few names lazily, on first use.
-_FROM_APP = {
-    "Config": "config",
-    "load_checkpoint": "checkpoint",
-    "read_checkpoint": "checkpoint",
-    "save_checkpoint": "checkpoint",
-    "export_model": "export",
+# Every name loads on first use (PEP 562), so that `import torchfric` costs nothing until a name
+# is used and `torchfric --help` never imports torch. Name → the module that defines it.
+_LAZY: dict[str, str] = {
+    **dict.fromkeys(
+        ["Experiment", "load_experiment", "make_experiment", "reconstruct_velocity", "save_csv"],
+        "data",
+    ),
+    **dict.fromkeys(["DivergenceError", "TorchfricError"], "errors"),
+    **dict.fromkeys(
+        [
+            "Callback",
+            "EKFCallback",
+            "EKFResult",
+            "EKFState",
+            "EKFTuning",
+            "EnsembleResult",
+            "EnsembleSpec",
+            "Innovation",
+            "OECallback",
+            "OEResult",
+            "OETuning",
+            "PassRecord",
+            "PrefitResult",
+            "fit_percent",
+            "friction_band",
+            "identify_ekf",
+            "identify_ekf_ensemble",
+            "identify_output_error",
+            "predict",
+            "prefit",
+            "score_simulation",
+            "update",
+        ],
+        "estimators",
+    ),  # fmt: skip
+    **dict.fromkeys(
+        [
+            "FRICTIONS",
+            "ArmModel",
+            "CoulombFriction",
+            "Friction",
+            "OddTanhFriction",
+            "PolytopicFriction",
+            "StribeckFriction",
+            "make_friction",
+            "simulate",
+        ],
+        "models",
+    ),  # fmt: skip
+    # The app layer (config files, checkpoints, the export) sits above everything else; the
+    # public face reaches these few names of it.
+    "Config": "app.config",
+    "load_checkpoint": "app.checkpoint",
+    "read_checkpoint": "app.checkpoint",
+    "save_checkpoint": "app.checkpoint",
+    "export_model": "app.export",
 }
+
+if TYPE_CHECKING:  # what the names are, for type checkers and editors
+    from .data import Experiment, load_experiment, make_experiment, reconstruct_velocity, save_csv
+    from .errors import DivergenceError, TorchfricError
+    from .estimators import (
+        Callback,
+        EKFCallback,
+        EKFResult,
+        EKFState,
+        EKFTuning,
+        EnsembleResult,
+        EnsembleSpec,
+        Innovation,
+        OECallback,
+        OEResult,
+        OETuning,
+        PassRecord,
+        PrefitResult,
+        fit_percent,
+        friction_band,
+        identify_ekf,
+        identify_ekf_ensemble,
+        identify_output_error,
+        predict,
+        prefit,
+        score_simulation,
+        update,
+    )
+    from .models import (
+        FRICTIONS,
+        ArmModel,
+        CoulombFriction,
+        Friction,
+        OddTanhFriction,
+        PolytopicFriction,
+        StribeckFriction,
+        make_friction,
+        simulate,
+    )
 
 
 def __getattr__(name: str):  # type: ignore[no-untyped-def]
-    if name in _FROM_APP:
+    if name in _LAZY:
         import importlib
 
-        value = getattr(importlib.import_module(f".app.{_FROM_APP[name]}", __name__), name)
+        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
         globals()[name] = value
         return value
     raise AttributeError(f"module 'torchfric' has no attribute {name!r}")
 
 
 def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_FROM_APP))
+    return sorted(set(globals()) | set(_LAZY))
 
 
 __all__ = [

@@ -24,7 +24,9 @@ from .chunks import (
     iter_chunks,
     make_chunk,
     pad_rows,
+    product_name,
     run_chunks,
+    step_key,
     structure_key,
 )
 from .simulation import compiled_engine, rk4_chunk
@@ -40,8 +42,10 @@ __all__ = [
     "iter_chunks",
     "make_chunk",
     "pad_rows",
+    "product_name",
     "rk4_chunk",
     "run_chunks",
     "simulation",
+    "step_key",
     "structure_key",
 ]

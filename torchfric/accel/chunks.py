@@ -19,7 +19,13 @@ the per-model caches of compiled code, so models that differ only in θ share th
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
+import inspect
 import json
+import os
+import secrets
+import sys
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
@@ -42,6 +48,8 @@ __all__ = [
     "iter_chunks",
     "run_chunks",
     "structure_key",
+    "step_key",
+    "product_name",
 ]
 
 # Samples per compiled call of `Step.chunk`: large enough that the per-call cost (guards,
@@ -95,6 +103,7 @@ def compile_step(
     native: bool = True,
     members: bool = False,
     member_consts: Sequence[bool] = (),
+    key: str | None = None,
 ) -> Step:
     """`eager` as a compiled `Step`: one sample through `compile_with_fallback`, and `size`
     samples per call through `make_chunk`.
@@ -102,16 +111,15 @@ def compile_step(
     ``eager(*state, *x, *consts)`` returns a flat tuple whose first `carry` entries are the new
     state (threaded from sample to sample) and whose others are the sample's outputs. Both
     compile on the first call, once per process and model; if compilation fails for any reason
-    the eager function is used from then on — same arithmetic. `options`, `native`, `members`
-    and `member_consts` are `make_chunk`'s."""
+    the eager function is used from then on — same arithmetic. `options`, `native`, `members`,
+    `member_consts` and `key` are `make_chunk`'s."""
 
     def one(*args: Tensor):  # type: ignore[no-untyped-def]
         out = eager(*args)
         return tuple(out[:carry]), tuple(out[carry:])
 
-    scan = make_chunk(
-        one, options=options, native=native, members=members, member_consts=member_consts
-    )
+    scan = make_chunk(one, options=options, native=native, members=members,
+                      member_consts=member_consts, key=key)  # fmt: skip
     return Step(eager, compile_with_fallback(eager), scan, size)
 
 
@@ -136,6 +144,7 @@ def make_chunk(
     native: bool = False,
     members: bool = False,
     member_consts: Sequence[bool] = (),
+    key: str | None = None,
 ) -> Callable:
     """`fn` applied along chunks of samples as one compiled call, with an eager fallback.
 
@@ -150,7 +159,8 @@ def make_chunk(
     With `native`, the chunk is first tried as generated C (`torchfric.accel.native`: the
     traced step as straight-line scalar code, 20-40x faster than the Inductor scan for the
     filter); when that path cannot translate `fn` it falls back to the Inductor scan, and that
-    to the eager loop. `members` and `member_consts` are `make_native_chunk`'s (for ensembles:
+    to the eager loop. `members`, `member_consts` and `key` (what `fn`'s code depends on: a
+    later process then finds its generated code without tracing) are `make_native_chunk`'s (for ensembles:
     `fn` is then the batched step, which the native path traces for one member; the Inductor
     and eager paths call it on the whole batch). The returned function's `.path` says which
     path ran last: "native", "inductor" or "eager".
@@ -160,7 +170,7 @@ def make_chunk(
         return _tagged(inductor)
     from .native import NativeUnavailable, make_native_chunk
 
-    generated = make_native_chunk(fn, members=members, member_consts=tuple(member_consts))
+    generated = make_native_chunk(fn, members=members, member_consts=tuple(member_consts), key=key)
     reasons: list[str] = []
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
@@ -260,12 +270,17 @@ def compile_with_fallback(
     shapes, `options`), compiled on the first call; if compilation fails for any reason `eager`
     is used from then on — same arithmetic. The returned function carries `.eager` and
     `.chosen` (the function in use)."""
-    compiled_fn = torch.compile(traced or eager, dynamic=False, fullgraph=True, options=options)
     chosen: list[Callable] = []
+    made: list[Callable] = []
 
     def compiled(*args: Tensor):  # type: ignore[no-untyped-def]
+        # `torch.compile` itself is made here, on the first call: it imports dynamo (about a
+        # second), which a run whose chunks all take the native path never needs.
+        if not made:
+            made.append(torch.compile(traced or eager, dynamic=False, fullgraph=True,
+                                      options=options))  # fmt: skip
         with _unlimited_recompiles():  # (a new shape later recompiles under the same rule)
-            return compiled_fn(*args)
+            return made[0](*args)
 
     def fast(*args: Tensor):  # type: ignore[no-untyped-def]
         if chosen:
@@ -327,11 +342,82 @@ def run_chunks(
     return carry, joined
 
 
+def step_key(kind: str, *parts: Any) -> str | None:
+    """`compile_step`'s `key` for a step of `kind` whose code depends on `parts` (JSON-able: a
+    `structure_key`, sub-steps, a `product_name`); None when a part is None (not nameable)."""
+    return None if any(p is None for p in parts) else json.dumps([kind, *parts])
+
+
+def product_name(mm: Callable) -> str | None:
+    """The name of a step's matrix product for `step_key`: "fused" (`fused_matmul`), "matmul"
+    (`torch.matmul`), None for any other."""
+    return "fused" if mm is fused_matmul else "matmul" if mm is torch.matmul else None
+
+
 def structure_key(model: ArmModel) -> str:
-    """What fixes a model's compiled code: its spec without θ's values. The key of the
-    per-model caches of compiled chunks (θ is an input of those, so the fitted models of
-    successive passes or epochs share them)."""
+    """What fixes a model's compiled code: its spec without θ's values, the classes of its
+    modules and, for classes defined outside torchfric (a user's own friction), a digest of
+    their source file. The key of the per-model caches of compiled chunks (θ is an input of
+    those, so the fitted models of successive passes or epochs share them), in this process and,
+    through the native code's aliases, in later ones."""
     spec = model.spec()
     spec["friction"] = {k: v for k, v in spec["friction"].items() if k != "values"}
     spec.pop("arm", None)  # θ's physical values; everything else fixes the structure
+    classes = {c for m in model.modules() for c in type(m).__mro__ if c.__module__ != "builtins"}
+    classes = {c for c in classes if not c.__module__.startswith("torch.")}
+    spec["classes"] = sorted(
+        f"{c.__module__}.{c.__qualname__}: {_methods_digest(c)}" for c in classes
+    )
+    spec["code"] = sorted(filter(None, (_foreign_source(c) for c in classes)))
     return json.dumps(spec, sort_keys=True, default=str)
+
+
+def _methods_digest(cls: type) -> str:
+    """A digest of the code of `cls`'s own methods as they are now (a method replaced at run
+    time changes it)."""
+    h = hashlib.sha256()
+    for name, member in sorted(vars(cls).items()):
+        for fn in (member, getattr(member, "__func__", None), getattr(member, "fget", None)):
+            code = getattr(fn, "__code__", None)
+            if code is not None:
+                h.update(name.encode() + b"\0")
+                _hash_code(h, code)
+    return h.hexdigest()[:16]
+
+
+def _hash_code(h: Any, code: Any) -> None:
+    """Feed a code object (its bytecode, names and constants, nested code included) to `h`."""
+    h.update(code.co_code + repr(code.co_names).encode())
+    for const in code.co_consts:
+        if hasattr(const, "co_code"):
+            _hash_code(h, const)
+        elif isinstance(const, frozenset):  # its order follows the process's hash seed
+            h.update(repr(sorted(map(repr, const))).encode())
+        else:
+            h.update(repr(const).encode())
+
+
+def _foreign_source(cls: type) -> str | None:
+    """SHA-256 of the file that defines `cls` when that is not torchfric's own (whose code is
+    part of every alias already); of the class's source where there is no file (a notebook);
+    where neither can be read, a token of this process, so that no later process reuses code
+    made for it. None for torchfric's and torch's classes."""
+    if cls.__module__.startswith(("torchfric.", "torch.")):
+        return None
+    path = getattr(sys.modules.get(cls.__module__), "__file__", None)
+    if path and os.path.isfile(path):
+        st = os.stat(path)
+        return _file_digest(path, st.st_mtime_ns, st.st_size)
+    try:
+        return hashlib.sha256(inspect.getsource(cls).encode()).hexdigest()
+    except (OSError, TypeError):
+        return f"{cls.__module__}.{cls.__qualname__} in process {_PROCESS_TOKEN}"
+
+
+_PROCESS_TOKEN = secrets.token_hex(8)
+
+
+@functools.cache
+def _file_digest(path: str, mtime_ns: int, size: int) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()

@@ -11,6 +11,8 @@ engine with `torchfric.models.simulate.register_engine` (`torchfric.accel` impor
 
 from __future__ import annotations
 
+import json
+
 import torch
 from torch import Tensor
 
@@ -43,7 +45,8 @@ def rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-u
         # Its loops run over 2 states and a few parameters, like the fused EKF step's.
         # Generated C first (`torchfric.accel.native`; a batch of B runs is B copies of the
         # step in one function), the Inductor scan where that cannot serve a shape.
-        chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True)
+        chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True,
+                           key=json.dumps(["rk4 step", direction, key[0]]))  # fmt: skip
         _RK4_CHUNKS[key] = (model, chunk)
     return _RK4_CHUNKS[key][1]
 

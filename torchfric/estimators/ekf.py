@@ -35,7 +35,17 @@ import torch
 from torch import Tensor
 from torch.func import grad
 
-from ..accel import CHUNK, Step, chunk_options, compile_step, fused_matmul, iter_chunks
+from ..accel import (
+    CHUNK,
+    Step,
+    chunk_options,
+    compile_step,
+    fused_matmul,
+    iter_chunks,
+    product_name,
+    step_key,
+    structure_key,
+)
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 
@@ -207,6 +217,8 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]
+    # what the code depends on (`compile_step`'s key): None for a product it cannot name
+    propagate.key = step_key("rk4-3/8 propagator", structure_key(model), substeps, product_name(mm))  # type: ignore[attr-defined]
     return propagate
 
 
@@ -321,7 +333,8 @@ def make_step(
     if not compile:
         return Step(eager)
     # carry: (x, P); per-sample outputs: (e, nis, loglik, ok)
-    return compile_step(eager, carry=2, size=chunk, options=chunk_options(mm), native=native)
+    return compile_step(eager, carry=2, size=chunk, options=chunk_options(mm), native=native,
+                        key=step_key("ekf step", getattr(flow, "key", None), product_name(mm)))  # fmt: skip
 
 
 @dataclass

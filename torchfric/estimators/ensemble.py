@@ -35,7 +35,16 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from ..accel import CHUNK, Step, chunk_options, compile_step, compile_with_fallback, iter_chunks
+from ..accel import (
+    CHUNK,
+    Step,
+    chunk_options,
+    compile_step,
+    compile_with_fallback,
+    iter_chunks,
+    product_name,
+    step_key,
+)
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
@@ -146,12 +155,11 @@ def make_masked_step(
     ``chunk((x, P, good, fail_at, sum_e2, sum_nis, loglik), (j (C,), u (C,), y (C, m)),
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
-    (`torchfric.native`): the step traced for one member, four members per SIMD vector, the
-    members split across the cores; otherwise, or when that path cannot translate the model,
-    the Inductor scan of the vmapped step.
-    """
+    (`torchfric.native`: one member traced, four per SIMD vector, split across the cores); else,
+    or when that path cannot translate the model, the Inductor scan of the vmapped step."""
     mm = mm or matmul_for(2 + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
+    key = step_key("ensemble step", make_propagator(model, substeps, mm=mm).key, product_name(mm))  # type: ignore[attr-defined]
 
     def masked(
         x: Tensor,
@@ -178,7 +186,8 @@ def make_masked_step(
     # All seven outputs are carried from sample to sample. Native path: every carry has the
     # member axis, and of the constants Q and R do.
     return compile_step(masked, carry=7, size=chunk, options=chunk_options(mm), native=native,
-                        members=True, member_consts=(False, True, False, True, False))  # fmt: skip
+                        members=True, member_consts=(False, True, False, True, False),
+                        key=key)  # fmt: skip
 
 
 def _keep_good(

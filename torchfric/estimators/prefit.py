@@ -20,6 +20,7 @@ low-passed signals are decimated to 4 samples per cut-off period.
 from __future__ import annotations
 
 import copy
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -308,8 +309,10 @@ def _native_rows(
         def value_row(dummy, x1, u1, a1, theta):  # type: ignore[no-untyped-def]
             return (dummy,), (sample_residual(theta[0], x1, u1, a1).unsqueeze(0),)
 
-        _ROW_CHUNKS[key] = (model, *(make_native_chunk(f, members=True, member_consts=(True,))
-                                     for f in (grad_row, value_row)))  # fmt: skip
+        _ROW_CHUNKS[key] = (model, *(
+            make_native_chunk(f, members=True, member_consts=(True,),
+                              key=json.dumps([f"prefit {f.__name__}", key]))
+            for f in (grad_row, value_row)))  # fmt: skip
     _, grad_chunk, value_chunk = _ROW_CHUNKS[key]
     valid = torch.ones(x.shape[0], dtype=torch.bool)
 

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import Tensor
-from torchdiffeq import odeint_adjoint
 
 from ..data import Experiment
 from ..errors import TorchfricError
@@ -143,6 +142,8 @@ def rollout(
     # the adjoint's backward integration over [t_i, t_{i−1}] gets its own sub-step grid.
     fieldfn = ZOHField(model, t, u, theta)
     options = {"grid_constructor": lambda _f, _y0, tt: sample_grid(tt, steps), "perturb": True}
+    from torchdiffeq import odeint_adjoint  # on use: it imports scipy.integrate (0.4 s)
+
     return odeint_adjoint(fieldfn, x0, t, method=METHOD, options=options, adjoint_params=(theta,))
 
 

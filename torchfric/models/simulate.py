@@ -17,7 +17,6 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
-from torchdiffeq import odeint
 
 from ..errors import TorchfricError
 from .arm import ArmModel
@@ -80,6 +79,8 @@ def odeint_engine(
     zero-order hold of `ZOHField` (differentiable by autograd; the reference)."""
     field = ZOHField(model, t, u, theta)
     options = {"grid_constructor": lambda _f, _y0, _t: grid, "perturb": True}
+    from torchdiffeq import odeint  # on use: it imports scipy.integrate (0.4 s)
+
     return odeint(field, x0, t, method=method, options=options)
 
 

@@ -16,7 +16,9 @@ the filter's speed limit. This module removes it without giving up autograd:
 3. **Emit and compile** (`emit`). The DAG becomes one straight-line C function body inside a
    loop over the chunk's samples; for ensembles, four members per SIMD vector and the members
    split across threads. It is compiled once with the system C compiler into a shared library
-   kept in a cache folder keyed by the source's hash, so later processes only re-trace.
+   kept in a cache folder keyed by the source's hash. A step made with a structural `key`
+   (all of torchfric's are) is also recorded under an *alias* of that key, so later processes
+   load its library without tracing (`make_native_chunk`).
 
 The arithmetic is the traced graph's, operation by operation, in IEEE double precision (no
 fast-math): results agree with the eager step to rounding. `make_native_chunk` has the calling
@@ -57,6 +59,7 @@ import torch
 from torch import Tensor
 
 from ...environment import native_enabled
+from .aliases import alias_key, find_alias, store_alias
 from .cache import NativeCacheWarning, _build, _fallback, cache_dir
 from .emit import _source
 from .scalar import NativeUnavailable
@@ -158,17 +161,31 @@ def _translate(
     flags: tuple,
     fixed: list,
     members: bool,
+    alias: str | None = None,
 ) -> _Built:
     """Trace `fn` for one sample (and one member: the member axis kept at size 1), generate its
-    C and build it with the C compiler `cc` (`_build`). `NativeUnavailable` when it cannot be
-    translated or built."""
+    C and build it with the C compiler `cc` (`_build`); recorded under `alias` when one is
+    given. `NativeUnavailable` when it cannot be translated or built."""
     one_c = [c[:1] if members else c for c in carry]
     one_k = [k[:1] if (members and f) else k for k, f in zip(consts, flags, strict=True)]
     src, shapes, dtypes, lanes = _source(
         fn, one_c, [x[0] for x in xs], one_k,
         flags if members else (False,) * len(consts), fixed, members=members,
     )  # fmt: skip
-    return _build(src, cc), shapes, dtypes, lanes
+    lib, library = _build(src, cc)
+    if alias is not None:
+        store_alias(alias, library, shapes, dtypes, lanes)
+    return lib, shapes, dtypes, lanes
+
+
+def _known(alias: str) -> _Built | None:
+    """The library recorded under `alias` (`find_alias`), or None."""
+    found = find_alias(alias)
+    if found is None:
+        return None
+    lib, rec = found
+    return (lib, [tuple(s) for s in rec["shapes"]],
+            [getattr(torch, d) for d in rec["dtypes"]], rec["lanes"])  # fmt: skip
 
 
 def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) -> None:
@@ -219,7 +236,11 @@ def _run(
 
 
 def make_native_chunk(
-    fn: Callable, *, members: bool = False, member_consts: Sequence[bool] = ()
+    fn: Callable,
+    *,
+    members: bool = False,
+    member_consts: Sequence[bool] = (),
+    key: str | None = None,
 ) -> Callable:
     """`torchfric.accel.make_chunk`'s ``chunk(carry, xs, valid, consts) -> (carry, outs)`` as
     generated C (see the module docstring), built on the first call for that call's shapes.
@@ -232,6 +253,13 @@ def make_native_chunk(
     or with the reason "TORCHFRIC_NATIVE=0" when that switch is set (read at every call);
     `torchfric.errors.TorchfricError`, here already, when ``$TORCHFRIC_NATIVE`` is neither
     0 nor 1.
+
+    `key` describes everything `fn`'s code depends on besides its inputs' shapes, dtypes and
+    0/1 structure (which are added): for torchfric's steps, the step's kind, the model's
+    `torchfric.accel.structure_key` and settings such as the RK4 sub-steps. With it, a process
+    finds the library an earlier one built without tracing `fn` (`cache.find_alias`); without
+    it, `fn` is traced in every process to find its library by the source's hash. The key must
+    name everything: two functions with one key share one library.
     """
     _enabled()  # a bad value is the user's error: said when the step is made, not mid-run
     built: dict[tuple, _Built] = {}
@@ -246,17 +274,21 @@ def make_native_chunk(
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
         fixed = [_structure(k, members and f) for k, f in zip(consts, flags, strict=True)]
-        key = _shape_key(carry, xs, consts, flags, fixed, members)
-        if key in failed:  # this shape was tried: the same reason, without tracing again
-            raise failed[key]
-        if key not in built:
+        shape = _shape_key(carry, xs, consts, flags, fixed, members)
+        if shape in failed:  # this shape was tried: the same reason, without tracing again
+            raise failed[shape]
+        if shape not in built:
             cc = _require_compiler()  # not remembered in `failed`: checked again at the next call
+            alias = None if key is None else alias_key(f"{key}\0{members}\0{shape!r}", cc)
+            lib = None if alias is None else _known(alias)
             try:
-                built[key] = _translate(fn, cc, carry, xs, consts, flags, fixed, members)
+                built[shape] = lib or _translate(
+                    fn, cc, carry, xs, consts, flags, fixed, members, alias
+                )
             except NativeUnavailable as exc:
-                failed[key] = exc
+                failed[shape] = exc
                 raise
-        return _run(built[key], carry, xs, valid, consts, K, C, members)
+        return _run(built[shape], carry, xs, valid, consts, K, C, members)
 
     chunk.native = True  # type: ignore[attr-defined]
     return chunk

@@ -373,10 +373,11 @@ def _load_or_build(cc: str, flags: list[str], source: str, key: str) -> ctypes.C
         raise _fallback("io", f"cannot build the generated code: {exc}") from exc
 
 
-def _build(source: str, cc: str) -> ctypes.CDLL:
+def _build(source: str, cc: str) -> tuple[ctypes.CDLL, str]:
     """Compile `source` with the C compiler `cc` once (cached on disk by the hash of source,
     flags, compiler and CPU, verified before every load: see the module docstring) and load it:
-    with `_FLAGS`, or `_PORTABLE_FLAGS` where the compiler rejects those."""
+    with `_FLAGS`, or `_PORTABLE_FLAGS` where the compiler rejects those. Returns the library
+    and its key (what `_store_alias` records)."""
     errors: list[str] = []
     for flags in (_FLAGS, _PORTABLE_FLAGS):
         ident = " ".join([*flags, cc, sys.platform, _cpu()])
@@ -388,5 +389,5 @@ def _build(source: str, cc: str) -> ctypes.CDLL:
                     errors.append(handle)
                     continue
                 _LOADED[key] = handle
-            return _LOADED[key]
+            return _LOADED[key], key
     raise _fallback("build-failed", f"C compiler failed: {errors[-1]}")
