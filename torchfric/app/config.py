@@ -11,6 +11,7 @@ Each section is a frozen dataclass that checks its own values on construction
     [estimator]                    # EstimatorConfig: EKFTuning, OETuning, EnsembleSpec
     passes = 10
     [simulation]                   # SimulationConfig
+    [log]                          # LogConfig
 
 Rules the loader applies (`Config.load`):
 
@@ -34,7 +35,7 @@ Rules the loader applies (`Config.load`):
 ``Config.loads(config.to_toml()) == config``.
 
 Modules: `torchfric.app.schema` (vocabulary, `Check`, did-you-mean), `torchfric.app.sections`
-(``[data]``, ``[model]``, ``[simulation]``), `torchfric.app.estimator_config` (``[estimator]``,
+(``[data]``, ``[model]``, ``[simulation]``, ``[log]``), `torchfric.app.estimator_config` (``[estimator]``,
 which holds the estimators' own settings dataclasses and their defaults),
 `torchfric.app.toml_io` (the TOML writer, ``--set`` values); this module: `Config`, loading,
 ``--set`` overrides and `SCHEMA`. Every name is importable from here.
@@ -74,7 +75,7 @@ from .schema import (
     suggest,
     unknown_section_key,
 )
-from .sections import DataConfig, ModelConfig, SimulationConfig
+from .sections import DataConfig, LogConfig, ModelConfig, SimulationConfig
 from .toml_io import parse_value, to_toml
 
 __all__ = [
@@ -82,6 +83,7 @@ __all__ = [
     "DataConfig",
     "ModelConfig",
     "EstimatorConfig",
+    "LogConfig",
     "SimulationConfig",
     "COLUMN_NAMES",
     "ENSEMBLE_KEYS",
@@ -111,6 +113,7 @@ _SECTIONS: dict[str, type[TableSection]] = {
     "model": ModelConfig,
     "estimator": EstimatorConfig,
     "simulation": SimulationConfig,
+    "log": LogConfig,
 }
 
 
@@ -141,6 +144,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
+    log: LogConfig = field(default_factory=LogConfig)
 
     def __post_init__(self) -> None:
         c = Check(self, "")

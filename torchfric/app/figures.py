@@ -45,7 +45,8 @@ def friction_figure(model: ArmModel, v_max: float, title: str, unit: str = "rad"
     ax.set_ylabel(f"friction b·q̇ + C(q̇) + offset [{force}]")
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
-    fig.tight_layout()
+    # fixed margins: `tight_layout` measured every label and cost as much as the drawing
+    fig.subplots_adjust(left=0.15, right=0.97, bottom=0.12, top=0.92)
     return fig
 
 
@@ -63,5 +64,5 @@ def response_figure(exp: Experiment, score: SimulationScore, unit: str = "rad") 
     ax[1].set_ylabel(f"q̇ [{si_unit(unit)}/s]")
     ax[1].set_xlabel("t [s]")
     ax[0].set_title(f"{exp.name}: FIT q {score.fit_q:.1f} %, q̇ {score.fit_qdot:.1f} %")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.1, right=0.98, bottom=0.1, top=0.93, hspace=0.08)
     return fig

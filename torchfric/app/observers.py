@@ -13,6 +13,7 @@ They run in that order, so each pass's scores are there before they are logged, 
 
 from __future__ import annotations
 
+import copy
 import time
 from collections.abc import Callable
 from typing import Any
@@ -93,28 +94,72 @@ class ValidationScores(Callback):
 
 
 class TensorBoardLog(Callback):
-    """Scalars and figures in the run's TensorBoard events, under the run's fixed tags."""
+    """Scalars and figures in the run's TensorBoard events, under the run's fixed tags.
+
+    Scalars are written every pass or epoch. Figures (the friction curve, each validation
+    record's response) cost more to draw than a pass of the filter, so they are drawn when they
+    are looked at (`torchfric.app.sections.LogConfig`): for the starting model (step 0) and the
+    final one when the run ends (`finish`), and in between every ``log.figure_every`` passes
+    or epochs ("auto": at most once a minute). A figure not drawn at its pass keeps that
+    pass's model (a copy) and scores, so the end figures are those of their own steps."""
+
+    AUTO_SECONDS = 60.0
 
     def __init__(
         self, cfg: Config, writer: Any, scores: ValidationScores, v_max: float, model: ArmModel
     ) -> None:
         self.cfg, self.writer, self.scores, self.v_max = cfg, writer, scores, v_max
         self.model = model  # the starting model: it splits an ensemble's θ into parameters
+        self.drawn_at = time.perf_counter()
+        # figures owed, by step: the start's (step 0) and the latest pass's or epoch's
+        self.owed: dict[int, Callable[[], None]] = {}
+
+    def due(self, step: int) -> bool:
+        """Whether the figures of `step` are drawn now rather than at the end."""
+        every = self.cfg.log.figure_every
+        if every == "auto":
+            return time.perf_counter() - self.drawn_at >= self.AUTO_SECONDS
+        return every > 0 and step % every == 0
+
+    def figures(self, step: int, draw: Callable[[], None]) -> None:
+        """Draw `step`'s figures with `draw` now when `due`, else owe them: the latest owed
+        figures replace the previous pass's (the start's are kept)."""
+        if self.due(step):
+            self.owed.pop(step, None)
+            draw()
+            self.drawn_at = time.perf_counter()
+            return
+        self.owed = {k: v for k, v in self.owed.items() if k == 0}
+        self.owed[step] = draw
+
+    def finish(self) -> None:
+        """The figures still owed (the start's and the final model's), drawn at the run's end."""
+        for step in sorted(self.owed):
+            self.owed.pop(step)()
+        self.writer.flush()
 
     def log_model(self, step: int, model: ArmModel, scalars: dict[str, float]) -> None:
-        """`model`'s parameters, `scalars`, friction curve and the latest validation scores."""
+        """`model`'s parameters, `scalars` and the latest validation scores; its friction curve
+        and responses (`figures`)."""
         for name, value in model.physical_parameters().items():
             self.writer.add_scalar(f"parameters/{name}", value, step)
         for key, value in scalars.items():
             self.writer.add_scalar(key, value, step)
-        unit = self.cfg.data.position_unit
-        self.writer.add_figure(
-            "friction_curve", friction_figure(model, self.v_max, f"pass {step}", unit), step
-        )
         for e, score in zip(self.scores.validation, self.scores.latest.values(), strict=True):
             self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
             self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
-            self.writer.add_figure(f"validation/{e.name}", response_figure(e, score, unit), step)
+        frozen, latest = copy.deepcopy(model), list(self.scores.latest.values())
+        unit = self.cfg.data.position_unit
+
+        def draw() -> None:
+            curve = friction_figure(frozen, self.v_max, f"pass {step}", unit)
+            self.writer.add_figure("friction_curve", curve, step)
+            for e, score in zip(self.scores.validation, latest, strict=True):
+                self.writer.add_figure(
+                    f"validation/{e.name}", response_figure(e, score, unit), step
+                )
+
+        self.figures(step, draw)
         self.writer.flush()
 
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
@@ -165,8 +210,13 @@ class TensorBoardLog(Callback):
                 w.add_scalar(f"validation/{name}/fit_q", f["fit_q"], record.index)
                 w.add_scalar(f"validation/{name}/fit_qdot", f["fit_qdot"], record.index)
             title = f"epoch {record.index} (best {result.best_epoch})"
-            figure = friction_figure(result.model, self.v_max, title, self.cfg.data.position_unit)
-            w.add_figure("friction_curve", figure, record.index)
+            frozen, step, unit = (
+                copy.deepcopy(result.model),
+                record.index,
+                self.cfg.data.position_unit,
+            )
+            self.figures(step, lambda: w.add_figure(
+                "friction_curve", friction_figure(frozen, self.v_max, title, unit), step))  # fmt: skip
         w.flush()
         return None
 

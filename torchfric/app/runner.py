@@ -319,12 +319,17 @@ class _Run:
             obs = self._observers(run, writer, model)
             if est is None:
                 self._log_start(obs, model)
-            if self.cfg.estimator.method == "ekf":
-                final, state, extra = _run_ekf(self.cfg, model, self.train, obs, est, run)
-            else:
-                final, state, extra = _run_output_error(
-                    self.cfg, model, self.train, self.val, obs, est
-                )
+            try:
+                if self.cfg.estimator.method == "ekf":
+                    final, state, extra = _run_ekf(self.cfg, model, self.train, obs, est, run)
+                else:
+                    final, state, extra = _run_output_error(
+                        self.cfg, model, self.train, self.val, obs, est
+                    )
+            except TorchfricError:  # a diverged run: its figures so far are worth a look
+                obs.tensorboard.finish()
+                raise
+            obs.tensorboard.finish()  # the figures owed: the start's and the final model's
             seconds = time.perf_counter() - self.t_start
             metrics = self._metrics(final, extra, seconds)
             self._write_result(run, final, state, metrics)

@@ -1,4 +1,4 @@
-"""The ``[data]``, ``[model]`` and ``[simulation]`` sections of a run config.
+"""The ``[data]``, ``[model]``, ``[simulation]`` and ``[log]`` sections of a run config.
 
 Each is a frozen dataclass whose fields are its TOML keys: it owns its defaults and checks its
 own values on construction (`__post_init__`, with `torchfric.app.schema.Check`), so a section
@@ -26,7 +26,7 @@ from .schema import (
     suggest,
 )
 
-__all__ = ["DataConfig", "ModelConfig", "SimulationConfig"]
+__all__ = ["DataConfig", "LogConfig", "ModelConfig", "SimulationConfig"]
 
 
 @dataclass(frozen=True)
@@ -203,3 +203,24 @@ class SimulationConfig(TableSection):
             if isinstance(self.substeps, bool) or not isinstance(self.substeps, int):
                 c.type_error("substeps", self.substeps, '"auto" or an integer >= 1', 4)
             c.integer("substeps", ge=1)
+
+
+@dataclass(frozen=True)
+class LogConfig(TableSection):
+    """``[log]``: what a run draws into TensorBoard besides its scalars (which are every pass).
+
+    Attributes:
+        figure_every: the friction curve and the validation responses. Always drawn for the
+            starting model (step 0) and the final one, when the run ends; in between, every N
+            passes or epochs for an integer N >= 1, never for 0, and for "auto" (the default)
+            at most once a minute, so that a run under a minute draws only those two.
+    """
+
+    figure_every: int | str = "auto"
+
+    def __post_init__(self) -> None:
+        c = Check(self, "log")
+        if self.figure_every != "auto":
+            if isinstance(self.figure_every, bool) or not isinstance(self.figure_every, int):
+                c.type_error("figure_every", self.figure_every, '"auto" or an integer >= 0', 5)
+            c.integer("figure_every", ge=0)

@@ -14,7 +14,6 @@ import warnings
 from collections.abc import Callable, Mapping
 
 import numpy as np
-import scipy.io
 
 from ..errors import TorchfricError, shorten
 from .convert import _check_step, _one_line
@@ -157,6 +156,8 @@ def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
 def _read_mat(path: pathlib.Path) -> dict[str, np.ndarray]:
     """The named arrays of a MATLAB v4-v7 ``.mat`` file (without its ``__header__`` entries)."""
     try:
+        import scipy.io  # on use: only MAT files need it
+
         raw = scipy.io.loadmat(path)
     except NotImplementedError:
         raise TorchfricError(

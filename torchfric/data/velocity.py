@@ -13,11 +13,11 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-import scipy.signal
 from torch import Tensor
 
 from ..errors import TorchfricError
 from .convert import ArrayLike, _as_tensor, _check_cutoff, _check_step, _signal
+from .filters import butter_sos, first_order, sosfiltfilt
 
 __all__ = [
     "highpass_derivative",
@@ -62,7 +62,7 @@ def highpass_derivative(q: ArrayLike, dt: float, cutoff_hz: float = 200.0) -> Te
     # Δq[k] = q[k] − q[k−1] with q[−1] = q[0]
     dq = np.diff(qa, axis=-1, prepend=qa[..., :1])
     # v[k] = p·v[k−1] + g·Δq[k], zero initial state
-    v = scipy.signal.lfilter([g], [1.0, -p], dq, axis=-1)
+    v = first_order(dq, p, g)
     return _as_tensor(v)
 
 
@@ -75,11 +75,11 @@ def _zero_phase_lowpass(
     if isinstance(order, bool) or not isinstance(order, int) or not 1 <= order <= 12:
         raise TorchfricError(f"{what}: order = {order!r}; expected an integer from 1 to 12")
     qa = _signal(q, f"{what}: q", 3)
-    sos = scipy.signal.butter(order, cutoff_hz, fs=1.0 / dt, output="sos")
+    sos = butter_sos(order, cutoff_hz, 1.0 / dt)
     # pad by 3·order cut-off periods (the filter's transient has died out by then); odd
     # extension continues a ramp as a ramp, so the ends keep their velocity
     padlen = min(qa.shape[-1] - 1, math.ceil(3 * order / (cutoff_hz * dt)))
-    return scipy.signal.sosfiltfilt(sos, qa, axis=-1, padtype="odd", padlen=padlen)
+    return sosfiltfilt(sos, qa, padlen)
 
 
 def zero_phase_derivative(
