@@ -52,6 +52,7 @@ import ctypes
 import os
 import shutil
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -125,6 +126,14 @@ def _threads(members: int) -> int:
     return max(1, min(members, int(env) if env else cores))
 
 
+# A call that takes less than this on one thread is not split: starting, joining and handing
+# the GIL between threads costs about a tenth of a millisecond each, and the pre-fit's calls
+# (0.5 ms of arithmetic, 160 of them) ran twice as long on two threads as on one.
+_SPLIT_SECONDS = 2e-3
+# Seconds per (group of members × sample) of each library, measured on one thread.
+_UNIT_SECONDS: dict[ctypes.CDLL, float] = {}
+
+
 # What one shape's translation gives: the loaded library, the per-sample outputs' shapes and
 # dtypes (one member's), and the members per SIMD vector.
 _Built = tuple[ctypes.CDLL, list, list, int]
@@ -190,11 +199,19 @@ def _known(alias: str) -> _Built | None:
 
 def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) -> None:
     """Run the library's chunk over `K` members and `C` samples: groups of `lanes` members,
-    split evenly across `_threads` threads (or in this thread when there is one)."""
+    split evenly across `_threads` threads; in this thread when there is one, or when the call
+    is too short to gain from threads (`_SPLIT_SECONDS`, timed on this library's first call,
+    unless ``$TORCHFRIC_NATIVE_THREADS`` sets the count)."""
     blocks = -(-K // lanes)  # groups of `lanes` members, split evenly across threads
     threads = _threads(blocks)
+    unit = _UNIT_SECONDS.get(lib)
+    if threads > 1 and not os.environ.get("TORCHFRIC_NATIVE_THREADS"):
+        if unit is None or unit * blocks * C < _SPLIT_SECONDS:
+            threads = 1
     if threads == 1:
+        t0 = time.perf_counter()
         lib.torchfric_chunk(0, K, K, C, ptrs)
+        _UNIT_SECONDS[lib] = (time.perf_counter() - t0) / max(blocks * C, 1)
         return
     bounds = [min(K, blocks * i // threads * lanes) for i in range(threads + 1)]
     workers = [threading.Thread(target=lib.torchfric_chunk, args=(a, b, K, C, ptrs))
