@@ -208,18 +208,19 @@ def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) ->
     if threads > 1 and not os.environ.get("TORCHFRIC_NATIVE_THREADS"):
         if unit is None or unit * blocks * C < _SPLIT_SECONDS:
             threads = 1
+    t0 = time.perf_counter()
     if threads == 1:
-        t0 = time.perf_counter()
         lib.torchfric_chunk(0, K, K, C, ptrs)
-        _UNIT_SECONDS[lib] = (time.perf_counter() - t0) / max(blocks * C, 1)
-        return
-    bounds = [min(K, blocks * i // threads * lanes) for i in range(threads + 1)]
-    workers = [threading.Thread(target=lib.torchfric_chunk, args=(a, b, K, C, ptrs))
-               for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]  # fmt: skip
-    for w in workers:
-        w.start()
-    for w in workers:
-        w.join()
+    else:
+        bounds = [min(K, blocks * i // threads * lanes) for i in range(threads + 1)]
+        workers = [threading.Thread(target=lib.torchfric_chunk, args=(a, b, K, C, ptrs))
+                   for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]  # fmt: skip
+        for w in workers:
+            w.start()
+        for w in workers:
+            w.join()
+    # the one-thread cost (split: at most threads × the time), so that the choice follows it
+    _UNIT_SECONDS[lib] = (time.perf_counter() - t0) * threads / max(blocks * C, 1)
 
 
 def _run(
