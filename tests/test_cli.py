@@ -100,6 +100,49 @@ def test_tensorboard_events_hold_parameters_trace_fit_and_figures(
     last = acc.Scalars("parameters/inertia")[-1].value
     assert last == pytest.approx(metrics["inertia"], rel=1e-6)
     assert "friction_curve" in tags["images"] and "validation/validation" in tags["images"]
+    # figures of a short run (log.figure_every = "auto"): the start's and the final model's
+    for tag in ("friction_curve", "validation/validation"):
+        assert [e.step for e in acc.Images(tag)] == [0, 2]
+
+
+@pytest.mark.parametrize(("every", "steps"), [(1, [0, 1, 2, 3]), (2, [0, 2, 3]), (0, [0, 3])])
+def test_figures_every_n_passes_and_always_at_the_start_and_the_end(
+    tmp_path: pathlib.Path, every: int, steps: list[int]
+) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = _config(tmp_path)
+    sets = [*SHORT, "--set", "estimator.passes=3", "--set", f"log.figure_every={every}"]
+    assert main(["train", str(cfg), "--quiet", *sets]) == 0
+    acc = EventAccumulator(str(tmp_path / "runs" / "short"), size_guidance={"images": 0})
+    acc.Reload()
+    for tag in ("friction_curve", "validation/validation"):
+        assert [e.step for e in acc.Images(tag)] == steps
+    # the end's figures are of the final model: the same image as a run that draws every pass
+    final = acc.Images("friction_curve")[-1].encoded_image_string
+    if every == 0:
+        other = EventAccumulator(str(tmp_path / "runs" / "every"), size_guidance={"images": 0})
+        assert main(["train", str(cfg), "--quiet", *sets, "--set", "log.figure_every=1",
+                     "--out", str(tmp_path / "runs" / "every")]) == 0  # fmt: skip
+        other.Reload()
+        assert other.Images("friction_curve")[-1].encoded_image_string == final
+        assert [e.encoded_image_string for e in other.Images("friction_curve")][0] == (
+            acc.Images("friction_curve")[0].encoded_image_string
+        )
+
+
+def test_auto_figures_follow_the_clock(tmp_path: pathlib.Path, monkeypatch) -> None:
+    """"auto" draws a pass's figures once a minute has passed since the last ones: with that
+    minute shortened to nothing, every pass."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from torchfric.app.observers import TensorBoardLog
+
+    monkeypatch.setattr(TensorBoardLog, "AUTO_SECONDS", 0.0)
+    assert main(["train", str(_config(tmp_path)), "--quiet", *SHORT]) == 0
+    acc = EventAccumulator(str(tmp_path / "runs" / "short"), size_guidance={"images": 0})
+    acc.Reload()
+    assert [e.step for e in acc.Images("friction_curve")] == [0, 1, 2]
 
 
 def test_resume_after_interruption_equals_uninterrupted(

@@ -309,3 +309,22 @@ def test_generate_writes_all_files_deterministically(tmp_path) -> None:
     other = rig.generate(tmp_path / "c", seed=1)
     for key, path in paths.items():
         assert path.read_bytes() != other[key].read_bytes(), key
+
+
+def test_the_compiled_lugre_loop_gives_the_python_loops_numbers_to_the_bit(monkeypatch):
+    """`torchfric.accel.native.lugre` (what the CLI runs) against the reference Python loop,
+    every state of whole records, the changed system and another seed included."""
+    from torchfric.accel import native
+    from torchfric.accel.native.lugre import lugre_integrator
+    from torchfric.data.rig import _run_experiment
+
+    if native.compiler() is None:
+        pytest.skip("no C compiler here")
+    compiled = lugre_integrator()
+    assert compiled is not None
+    for name, seed in (("identification", 0), ("changed_validation", 5)):
+        ref, fast = _run_experiment(name, seed), _run_experiment(name, seed, compiled)
+        for key in ref:
+            assert np.array_equal(ref[key], fast[key]), (name, key)
+    monkeypatch.setenv("TORCHFRIC_NATIVE", "0")
+    assert lugre_integrator() is None  # the switch turns it off: the Python loop runs

@@ -188,9 +188,10 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
+    from ..accel.native.lugre import lugre_integrator
     from ..data.rig import generate
 
-    paths = generate(args.outdir, seed=args.seed, force=args.force)
+    paths = generate(args.outdir, seed=args.seed, force=args.force, integrate=lugre_integrator())
     for name, path in paths.items():
         print(f"{name}: {path}")
     return 0

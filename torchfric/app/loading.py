@@ -29,10 +29,11 @@ def _read_record(cfg: Config, path: str) -> tuple[Experiment, str]:
     """The record at `path` (or the rig's ``rig:NAME``) in SI units, with its fingerprint."""
     d = cfg.data
     if path.startswith(RIG_PREFIX):
+        from ..accel.native.lugre import lugre_integrator
         from ..data.rig import rig_experiment
 
         name = path[len(RIG_PREFIX) :]
-        arrays = rig_experiment(name, seed=cfg.seed)
+        arrays = rig_experiment(name, seed=cfg.seed, integrate=lugre_integrator())
         exp = make_experiment(arrays["t"], arrays["u"], arrays["q"], name=name)
         if d.start or d.stop is not None:
             exp = exp.slice(d.start, d.stop)

@@ -34,7 +34,7 @@ import numpy as np
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes, atomic_write_text
 from .excitation import _PEAK_VELOCITY, EXCITATIONS, excitation
-from .rig_model import RigParameters, _check_seed, simulate_rig
+from .rig_model import Integrator, RigParameters, _check_seed, simulate_rig
 
 __all__ = [
     "RigParameters",
@@ -82,24 +82,29 @@ def _check_name(name: str) -> tuple[str, float, str]:
     return _EXPERIMENT_SPEC[name]
 
 
-def _run_experiment(name: str, seed: int) -> dict[str, np.ndarray]:
+def _run_experiment(
+    name: str, seed: int, integrate: Integrator | None = None
+) -> dict[str, np.ndarray]:
     """Simulate experiment `name` for `seed` from scratch (`rig_experiment` memoises it)."""
     kind, duration, system = _check_name(name)
     nominal = RigParameters()
     params = nominal.changed() if system == "changed" else nominal
     u = excitation(kind, duration=duration, dt=nominal.dt, seed=seed, params=nominal)
-    return simulate_rig(params, u, seed=(int(seed), _DISTURBANCE_CODE[name]))
+    return simulate_rig(params, u, seed=(int(seed), _DISTURBANCE_CODE[name]), integrate=integrate)
 
 
-def rig_experiment(name: str, *, seed: int = 0) -> dict[str, np.ndarray]:
+def rig_experiment(
+    name: str, *, seed: int = 0, integrate: Integrator | None = None
+) -> dict[str, np.ndarray]:
     """One named experiment of `EXPERIMENTS` (see `simulate_rig` for the keys); deterministic.
 
-    Results are memoised per ``(name, seed)``; the returned arrays are copies.
+    Results are memoised per ``(name, seed)``; the returned arrays are copies. `integrate` is
+    `simulate_rig`'s (the same numbers whichever runs).
     """
     _check_name(name)
     key = (name, _check_seed(seed))
     if key not in _CACHE:
-        _CACHE[key] = _run_experiment(name, int(seed))
+        _CACHE[key] = _run_experiment(name, int(seed), integrate)
     return {k: v.copy() for k, v in _CACHE[key].items()}
 
 
@@ -145,7 +150,11 @@ def _prepare_outdir(out: pathlib.Path, force: bool) -> None:
 
 
 def generate(
-    outdir: str | pathlib.Path, *, seed: int = 0, force: bool = False
+    outdir: str | pathlib.Path,
+    *,
+    seed: int = 0,
+    force: bool = False,
+    integrate: Integrator | None = None,
 ) -> dict[str, pathlib.Path]:
     """Write every experiment as ``<outdir>/<name>.csv`` (``t,u,q``), plus ground truth.
 
@@ -165,7 +174,7 @@ def generate(
     states: dict[str, np.ndarray] = {}
     per_experiment: dict[str, dict[str, Any]] = {}
     for name in EXPERIMENTS:
-        data = rig_experiment(name, seed=seed)
+        data = rig_experiment(name, seed=seed, integrate=integrate)
         kind, duration, system = _EXPERIMENT_SPEC[name]
         path = out / f"{name}.csv"
         table = np.column_stack([data["t"], data["u"], data["q"]])

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,7 +45,13 @@ import numpy as np
 
 from ..errors import TorchfricError
 
-__all__ = ["RigParameters", "simulate_rig"]
+__all__ = [
+    "Integrator",
+    "RigParameters",
+    "integrator_constants",
+    "python_integrator",
+    "simulate_rig",
+]
 
 
 @dataclass(frozen=True)
@@ -163,10 +169,43 @@ def _disturbance(n: int, dt: float, std: float, seed: Sequence[int]) -> np.ndarr
     return d * (std / d.std())
 
 
+def integrator_constants(p: RigParameters) -> tuple[float, ...]:
+    """The constants of `_integrate`'s sub-step, in its order: ``h, M, Fc, Fs − Fc, 1/vs, σ0,
+    σ1, h σ0, h² σ0, σ1 h, h/2, M − h σ2/2, M + h σ2/2`` (computed once, here, so that any
+    other implementation of the loop starts from the very same doubles)."""
+    h = p.dt / p.substeps
+    hs0 = h * p.sigma0
+    hs2h = 0.5 * h * p.sigma2
+    return (h, p.inertia, p.Fc, p.Fs - p.Fc, 1.0 / p.vs, p.sigma0, p.sigma1, hs0, h * hs0,
+            p.sigma1 * h, 0.5 * h, p.inertia - hs2h, p.inertia + hs2h)  # fmt: skip
+
+
+Integrator = Callable[[np.ndarray, np.ndarray, tuple[float, ...], int, float, float, float],
+                      tuple[np.ndarray, np.ndarray, np.ndarray]]  # fmt: skip
+"""``integrate(c_m·u, τ_d, integrator_constants(p), p.substeps, q0, v0, z0) -> (q, v, z)`` at
+the sample times: `python_integrator`, or another implementation of exactly its arithmetic
+(`torchfric.accel.native.lugre`)."""
+
+
+def python_integrator(
+    cmu: np.ndarray,
+    dist: np.ndarray,
+    constants: tuple[float, ...],
+    substeps: int,
+    q: float,
+    v: float,
+    z: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_integrate` on arrays: the reference `Integrator`."""
+    qs, vs, zs = _integrate(cmu.tolist(), dist.tolist(), constants, substeps, q, v, z)
+    return np.asarray(qs), np.asarray(vs), np.asarray(zs)
+
+
 def _integrate(
     cmu: list[float],
     dist: list[float],
-    p: RigParameters,
+    constants: tuple[float, ...],
+    ns: int,
     q: float,
     v: float,
     z: float,
@@ -187,21 +226,7 @@ def _integrate(
     """
     expm1 = math.expm1
     exp = math.exp
-    ns = p.substeps
-    h = p.dt / ns
-    M = p.inertia
-    Fc = p.Fc
-    dF = p.Fs - p.Fc
-    ivs = 1.0 / p.vs
-    s0 = p.sigma0
-    s1 = p.sigma1
-    hs0 = h * s0
-    hhs0 = h * hs0
-    s1h = s1 * h
-    hh = 0.5 * h
-    hs2h = 0.5 * h * p.sigma2
-    m_num = M - hs2h
-    den0 = M + hs2h
+    h, M, Fc, dF, ivs, s0, s1, hs0, hhs0, s1h, hh, m_num, den0 = constants
     dv = 0.0  # previous sub-step's velocity increment
     qs = [q]
     vs = [v]
@@ -245,10 +270,13 @@ def simulate_rig(
     *,
     seed: int | Sequence[int],
     x0: Sequence[float] = (0.0, 0.0, 0.0),
+    integrate: Integrator | None = None,
 ) -> dict[str, np.ndarray]:
     """Simulate the rig under the sampled input ``u`` [A] (zero-order hold, period ``params.dt``).
 
     ``seed`` selects the disturbance realisation; ``x0 = (q, q̇, z)`` is the initial state.
+    `integrate` runs the sub-step loop (default `python_integrator`; the CLI passes the same
+    loop compiled, `torchfric.accel.native.lugre`, which gives the same numbers to the bit).
     Returns arrays of length ``len(u)`` at ``t = k dt``: ``t``, ``u``, ``q_true``, ``qdot_true``,
     ``z``, ``friction`` (the LuGre torque F), ``disturbance`` (τ_d) and ``q`` (the measurement:
     ``q_true`` rounded to the nearest encoder count).
@@ -268,10 +296,10 @@ def simulate_rig(
     seed_list = [_check_seed(s) for s in ((seed,) if np.ndim(seed) == 0 else seed)]
     n = u.size
     dist = _disturbance(n, params.dt, params.disturbance_std, seed_list)
-    qs, vs, zs = _integrate((params.c_m * u).tolist(), dist.tolist(), params, *x0)
-    q_true = np.asarray(qs)
-    v = np.asarray(vs)
-    z = np.asarray(zs)
+    consts = integrator_constants(params)
+    q_true, v, z = (integrate or python_integrator)(
+        params.c_m * u, dist, consts, params.substeps, *x0
+    )
     g = params.stribeck(v)
     zdot = v - params.sigma0 * np.abs(v) * z / g
     friction = params.sigma0 * z + params.sigma1 * zdot + params.sigma2 * v
