@@ -23,3 +23,17 @@ def shared_data() -> pathlib.Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real data sets not found at {SHARED_DATA} (they live beside the project)")
     return SHARED_DATA
+
+
+@pytest.fixture
+def native_cache(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
+    """A compiled-code cache of the test's own (``TORCHFRIC_CACHE``), the native path on, and
+    nothing loaded, warned about or made private yet: what a fresh process sees."""
+    from torchfric.accel import native
+
+    monkeypatch.setenv("TORCHFRIC_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
+    monkeypatch.setattr(native.cache, "_LOADED", {})
+    monkeypatch.setattr(native.cache, "_WARNED", set())
+    monkeypatch.setattr(native.cache, "_PRIVATE", None)
+    return tmp_path / "cache"

@@ -8,6 +8,7 @@ loaded, as a fresh process would.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import textwrap
@@ -45,13 +46,8 @@ def _eager(fn, n: int = 3, c: float = 0.25) -> torch.Tensor:  # type: ignore[no-
 
 
 @pytest.fixture(autouse=True)
-def cache(tmp_path, monkeypatch) -> Path:  # type: ignore[no-untyped-def]
-    monkeypatch.setenv("TORCHFRIC_CACHE", str(tmp_path / "cache"))
-    monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
-    monkeypatch.setattr(native.cache, "_LOADED", {})
-    monkeypatch.setattr(native.cache, "_WARNED", set())
-    monkeypatch.setattr(native.cache, "_PRIVATE", None)
-    return tmp_path / "cache"
+def cache(native_cache) -> Path:  # type: ignore[no-untyped-def]
+    return native_cache
 
 
 @pytest.fixture
@@ -124,7 +120,12 @@ def test_a_garbled_record_is_replaced(cache, traces, monkeypatch):
 def test_a_record_whose_library_fails_verification_costs_a_rebuild(cache, traces, monkeypatch):
     make_native_chunk(_fn, key="tanh step")(*_args())
     (lib,) = cache.glob("step_*.so")
-    lib.write_bytes(lib.read_bytes()[:-64] + b"\0" * 64)  # not what its digest record says
+    # not what its digest record says; a new file (writing into the one this process has
+    # mapped would change the code it runs)
+    garbled = lib.with_suffix(".tmp")
+    garbled.write_bytes(lib.read_bytes()[:-64] + b"\0" * 64)
+    garbled.chmod(0o700)
+    os.replace(garbled, lib)
     _fresh_process(monkeypatch)
     (x,), _ = make_native_chunk(_fn, key="tanh step")(*_args())
     torch.testing.assert_close(x, _eager(_fn), rtol=1e-15, atol=0)
@@ -202,7 +203,7 @@ def test_a_warm_process_runs_the_filter_without_tracing(tmp_path):
         print(repr(float(res.model.inertia)), "torch._inductor" in sys.modules)
         """
     )
-    env = {**__import__("os").environ, "TORCHFRIC_CACHE": str(tmp_path / "cache")}
+    env = {**os.environ, "TORCHFRIC_CACHE": str(tmp_path / "cache")}
     env.pop("TORCHFRIC_NATIVE", None)
     out = [
         subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,

@@ -116,15 +116,10 @@ def planted(tmp_path_factory) -> Path:  # type: ignore[no-untyped-def]
 
 
 @pytest.fixture(autouse=True)
-def cache(tmp_path, monkeypatch) -> Path:  # type: ignore[no-untyped-def]
+def cache(native_cache, tmp_path, monkeypatch) -> Path:  # type: ignore[no-untyped-def]
     """A cache of the test's own, and nothing loaded, warned about or made private yet."""
-    monkeypatch.setenv("TORCHFRIC_CACHE", str(tmp_path / "cache"))
     monkeypatch.setenv("TORCHFRIC_TEST_MARKER", str(tmp_path / "planted-code-ran"))
-    monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
-    monkeypatch.setattr(native.cache, "_LOADED", {})
-    monkeypatch.setattr(native.cache, "_WARNED", set())
-    monkeypatch.setattr(native.cache, "_PRIVATE", None)
-    return tmp_path / "cache"
+    return native_cache
 
 
 def _seed(built: Path, cache: Path) -> Path:

@@ -327,7 +327,10 @@ class _Run:
                         self.cfg, model, self.train, self.val, obs, est
                     )
             except TorchfricError:  # a diverged run: its figures so far are worth a look
-                obs.tensorboard.finish()
+                try:
+                    obs.tensorboard.finish()
+                except Exception:  # noqa: BLE001 - the run's own error is the one to report
+                    pass
                 raise
             obs.tensorboard.finish()  # the figures owed: the start's and the final model's
             seconds = time.perf_counter() - self.t_start
