@@ -33,6 +33,7 @@ __all__ = [
     "ValidationScores",
     "TensorBoardLog",
     "ProgressLines",
+    "duration",
     "ekf_scalars",
     "fit_text",
     "ensemble_spread",
@@ -53,6 +54,11 @@ def ekf_scalars(record: PassRecord) -> dict[str, float]:
     for i, v in enumerate(record.innovation_rms):
         scalars[f"ekf/innovation_rms/{i}"] = v
     return scalars
+
+
+def duration(seconds: float) -> str:
+    """A progress line's time: ``26 ms`` under a second (a pass often is), else ``3.4 s``."""
+    return f"{seconds * 1e3:.0f} ms" if seconds < 1.0 else f"{seconds:.1f} s"
 
 
 def fit_text(fits: dict[str, dict[str, float]]) -> str:
@@ -244,7 +250,7 @@ class ProgressLines(Callback):
                 f"({record.loglik:.6g}): undone, keeping pass {record.index - 1}; stopping\n"
             )
         self.say(
-            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {record.seconds:.1f} s "
+            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {duration(record.seconds)} "
             f"({record.samples / max(record.seconds, 1e-9):,.0f} samples/s): "
             f"inertia {record.parameters['inertia']:.6g}, Δθ {record.rel_change:.2e}"
             + (f", {text}" if text else "")
@@ -258,7 +264,7 @@ class ProgressLines(Callback):
         spread = f"inertia {inertia[0]:.5g} … {inertia[-1]:.5g}" if inertia else "no member left"
         self.say(
             f"\r  pass {pass_index}/{self.cfg.estimator.passes} of {len(state['status'])} members "
-            f"done in {time.perf_counter() - self.t_pass:.1f} s: "
+            f"done in {duration(time.perf_counter() - self.t_pass)}: "
             + ", ".join(f"{c} {s}" for s, c in counts.items())
             + f"; {spread}\n"
         )
