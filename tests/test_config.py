@@ -305,6 +305,9 @@ def test_sections_validate_on_construction() -> None:
         ('[data]\nposition_unit = "inch"', [], r'data\.position_unit = "inch" is not allowed'),
         ('[simulation]\nmethod = "dopri5"', [], r'simulation\.method = "dopri5" is not allowed'),
         ('[simulation]\nsubsteps = "x"', [], r'expected "auto" or an integer >= 1'),
+        ('[log]\nfigure_every = "often"', [], r'log\.figure_every = "often" is a string, expected "auto" or an integer >= 0'),
+        ("[log]\nfigure_every = -1", [], r"log\.figure_every = -1 is out of range; allowed: an integer >= 0"),
+        ("", ["log.figure_evry=2"], r'unknown key "log\.figure_evry" \(did you mean "log\.figure_every"\?\)'),
         (
             '[model]\nfriction = "polytopic"\nsize = 4',
             [],
