@@ -212,3 +212,15 @@ def test_a_warm_process_runs_the_filter_without_tracing(tmp_path):
     ]
     assert out[0][1] == "True"  # the first process traced (and built)
     assert out[1] == [out[0][0], "False"]  # the same result, nothing traced
+
+
+def test_a_record_that_cannot_be_written_leaves_nothing_behind(cache, traces, monkeypatch):
+    from torchfric.accel.native import aliases
+
+    def full_disk(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(aliases.json, "dump", full_disk)
+    (x,), _ = make_native_chunk(_fn, key="tanh step")(*_args())  # the run goes on
+    torch.testing.assert_close(x, _eager(_fn), rtol=1e-15, atol=0)
+    assert not list(cache.glob(".alias-*")) and not list(cache.glob("alias_*"))

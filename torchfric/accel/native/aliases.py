@@ -114,6 +114,7 @@ def store_alias(alias: str, library: str, shapes: list, dtypes: list, lanes: int
     cannot be written only costs the next process a trace)."""
     rec = {"format": _ALIAS_FORMAT, "library": library, "lanes": lanes,
            "shapes": [list(s) for s in shapes], "dtypes": [str(d).split(".")[-1] for d in dtypes]}  # fmt: skip
+    tmp = None
     try:
         folder = _folder()
         if folder == _cache._PRIVATE:
@@ -123,5 +124,9 @@ def store_alias(alias: str, library: str, shapes: list, dtypes: list, lanes: int
             os.fchmod(f.fileno(), 0o600)
             json.dump(rec, f)
         os.replace(tmp, _alias_path(folder, alias))
+        tmp = None
     except OSError:
         pass
+    finally:
+        if tmp is not None:  # a record half written (a full disk): not left behind
+            _discard(Path(tmp))
