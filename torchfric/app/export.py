@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes
 from ..models.arm import ArmModel, arm_field, arm_friction
-from ..models.simulate import SOLVERS
+from ..models.simulate import SOLVERS, friction_stiffness
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]
 
@@ -127,7 +127,7 @@ class ExportedArm(nn.Module):
         self.fixed_substeps = fixed
         self.max_substeps = int(max_substeps)
         self.stability = float(SOLVERS[method])
-        self.stiffness = _stiffness(model, theta)
+        self.stiffness = friction_stiffness(model, theta)
         self.nominal_dt = 0.0 if dt is None else float(dt)
         self.parameters_by_name = model.physical_parameters()
         self.curve = _trace_curve(model, fric)
@@ -223,20 +223,6 @@ class ExportedArm(nn.Module):
 
     def forward(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
         return self.simulate(t, u, x0)
-
-
-def _stiffness(model: ArmModel, theta: Tensor) -> float:
-    """λ = max |∂q̈/∂q̇| over |v| in [1e-4, 1e3], as `torchfric.simulate.auto_substeps` takes it."""
-    mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
-    v = torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags]).requires_grad_(True)
-    with torch.enable_grad():
-        (g,) = torch.autograd.grad(model.friction_torque(v, theta).sum(), v)
-    lam = float(g.detach().abs().max() / model.split(theta)[1]["inertia"])
-    if not math.isfinite(lam):
-        raise TorchfricError(
-            "the model's friction slope is not finite; check the parameters (NaN or inf in θ)"
-        )
-    return lam
 
 
 def export_model(

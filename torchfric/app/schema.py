@@ -165,6 +165,15 @@ class Check:
             self.range_error(name, value, "a 64-bit integer")
         self.set(name, int(value))
 
+    def auto_or_integer(self, name: str, *, ge: int, example: int) -> None:
+        """``"auto"``, or an integer >= `ge` (`integer`'s checks)."""
+        value = getattr(self.obj, name)
+        if value == "auto":
+            return
+        if isinstance(value, bool) or not isinstance(value, int):
+            self.type_error(name, value, f'"auto" or an integer >= {ge}', example)
+        self.integer(name, ge=ge)
+
     def boolean(self, name: str) -> None:
         value = getattr(self.obj, name)
         if not isinstance(value, bool):

@@ -199,10 +199,7 @@ class SimulationConfig(TableSection):
     def __post_init__(self) -> None:
         c = Check(self, "simulation")
         c.string("method", choices=tuple(SOLVERS))
-        if self.substeps != "auto":
-            if isinstance(self.substeps, bool) or not isinstance(self.substeps, int):
-                c.type_error("substeps", self.substeps, '"auto" or an integer >= 1', 4)
-            c.integer("substeps", ge=1)
+        c.auto_or_integer("substeps", ge=1, example=4)
 
 
 @dataclass(frozen=True)
@@ -219,8 +216,4 @@ class LogConfig(TableSection):
     figure_every: int | str = "auto"
 
     def __post_init__(self) -> None:
-        c = Check(self, "log")
-        if self.figure_every != "auto":
-            if isinstance(self.figure_every, bool) or not isinstance(self.figure_every, int):
-                c.type_error("figure_every", self.figure_every, '"auto" or an integer >= 0', 5)
-            c.integer("figure_every", ge=0)
+        Check(self, "log").auto_or_integer("figure_every", ge=0, example=5)

@@ -217,8 +217,10 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]
-    # what the code depends on (`compile_step`'s key): None for a product it cannot name
-    propagate.key = step_key("rk4-3/8 propagator", structure_key(model), substeps, product_name(mm))  # type: ignore[attr-defined]
+    # what its code depends on (part of `compile_step`'s key); None for an unnamed product
+    propagate.key = step_key(  # type: ignore[attr-defined]
+        "rk4-3/8 propagator", structure_key(model), substeps, product_name(mm)
+    )
     return propagate
 
 

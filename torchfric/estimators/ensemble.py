@@ -123,15 +123,15 @@ def make_batched_step(
 
     ``fn(x (K,n), P (K,n,n), u, y (m,), dt, Q (K,n,n), H, R (K,m,m), bound)
     -> (x⁺, P⁺, e (K,m), nis (K,), loglik (K,), ok (K,))``. Member j's outputs equal the
-    single-filter step on member j's inputs (same arithmetic, tested).
-    """
-    # The same product rule as one filter (`matmul_for`): fused up to 20 states, compiled as
-    # scalar code (`chunk_options`). Measured with the chunked scan, tanh(3): 186 k / 272 k /
-    # 328 k filter-steps/s at K = 16 / 256 / 1024 against 92 k / 126 k / 125 k with BLAS calls.
-    mm = mm or matmul_for(2 + model.num_parameters)
-    eager = make_step(make_propagator(model, substeps, mm=mm), mm=mm)
-    batched = vmap(eager, in_dims=(0, 0, None, None, None, 0, None, 0, None))
-    return compile_with_fallback(batched) if compile else batched
+    single-filter step on member j's inputs (same arithmetic, tested). Its `.key` names its
+    code (`torchfric.accel.step_key`)."""
+    # The product rule of one filter (`matmul_for`; with the chunked scan, tanh(3): 186 k / 272 k
+    # / 328 k filter-steps/s at K = 16 / 256 / 1024 fused, against 92 k / 126 k / 125 k BLAS).
+    flow = make_propagator(model, substeps, mm=mm or matmul_for(2 + model.num_parameters))
+    batched = vmap(make_step(flow), in_dims=(0, 0, None, None, None, 0, None, 0, None))
+    out = compile_with_fallback(batched) if compile else batched
+    out.key = step_key("batched step", flow.key, product_name(flow.mm))  # type: ignore[attr-defined]
+    return out
 
 
 def make_masked_step(
@@ -159,7 +159,7 @@ def make_masked_step(
     or when that path cannot translate the model, the Inductor scan of the vmapped step."""
     mm = mm or matmul_for(2 + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
-    key = step_key("ensemble step", make_propagator(model, substeps, mm=mm).key, product_name(mm))  # type: ignore[attr-defined]
+    key = step_key("ensemble masked step", batched.key)  # type: ignore[attr-defined]
 
     def masked(
         x: Tensor,

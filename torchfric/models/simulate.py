@@ -25,6 +25,7 @@ __all__ = [
     "simulate",
     "rk4_step",
     "auto_substeps",
+    "friction_stiffness",
     "sample_grid",
     "SOLVERS",
     "ENGINES",
@@ -139,9 +140,17 @@ def auto_substeps(
     """Smallest sub-step count that keeps the explicit solver stable for the model's stiffest
     friction slope: ``S = ⌈λ·dt / c⌉`` with ``λ = max |∂q̈/∂q̇|`` over velocities from 1e-4 to 1e3
     and `c` the solver's allowed ``|λh|`` (`SOLVERS`), for the model's own θ or a given one."""
+    theta = (model.theta_vector() if theta is None else theta).detach()
+    lam = friction_stiffness(model, theta)
+    return int(min(max(1, math.ceil(lam * dt / SOLVERS[method])), max_substeps))
+
+
+def friction_stiffness(model: ArmModel, theta: Tensor) -> float:
+    """λ = max |∂q̈/∂q̇| over |q̇| in [1e-4, 1e3] for θ `theta`: the stiffness `auto_substeps`
+    (and the exported module's own rule) sizes the sub-steps by. A one-line error when it is
+    not finite."""
     mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
     v = torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags]).requires_grad_(True)
-    theta = (model.theta_vector() if theta is None else theta).detach()
     with torch.enable_grad():
         (g,) = torch.autograd.grad(model.friction_torque(v, theta).sum(), v)
     lam = float(g.detach().abs().max() / model.split(theta)[1]["inertia"])
@@ -149,7 +158,7 @@ def auto_substeps(
         raise TorchfricError(
             "the model's friction slope is not finite; check the parameters (NaN or inf in θ)"
         )
-    return int(min(max(1, math.ceil(lam * dt / SOLVERS[method])), max_substeps))
+    return lam
 
 
 def simulate(

@@ -275,7 +275,7 @@ def make_native_chunk(
     `key` describes everything `fn`'s code depends on besides its inputs' shapes, dtypes and
     0/1 structure (which are added): for torchfric's steps, the step's kind, the model's
     `torchfric.accel.structure_key` and settings such as the RK4 sub-steps. With it, a process
-    finds the library an earlier one built without tracing `fn` (`cache.find_alias`); without
+    finds the library an earlier one built without tracing `fn` (`aliases.find_alias`); without
     it, `fn` is traced in every process to find its library by the source's hash. The key must
     name everything: two functions with one key share one library.
     """

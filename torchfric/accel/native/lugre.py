@@ -15,12 +15,10 @@ None and the rig runs the Python loop.
 from __future__ import annotations
 
 import ctypes
-import os
 from collections.abc import Callable
 
 import numpy as np
 
-from ...environment import native_enabled
 from .cache import _build
 from .scalar import NativeUnavailable
 
@@ -81,10 +79,10 @@ def lugre_integrator() -> Callable | None:
     """The rig's `torchfric.data.rig_model.Integrator` as compiled C, or None where it cannot
     be had (no C compiler, ``TORCHFRIC_NATIVE=0``, the build failing: the rig then runs its
     Python loop, to the same numbers)."""
-    from . import compiler
+    from . import _enabled, compiler  # (the package imports this module's siblings first)
 
     cc = compiler()
-    if cc is None or not native_enabled(os.environ.get("TORCHFRIC_NATIVE")):
+    if cc is None or not _enabled():
         return None
     try:
         lib, _ = _build(_SOURCE, cc)
