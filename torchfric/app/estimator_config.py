@@ -100,13 +100,17 @@ class EstimatorConfig(TableSection):
             ``seed`` is the run's top-level ``seed`` (`oe_tuning`), not a key.
         ekf_ensemble: the EKF ensemble (`EnsembleSpec`; keys ensemble → members,
             ensemble_spread → spread, ensemble_q_scales → q_scales, ensemble_r_scales →
-            r_scales; its ``seed`` is the run's, `ensemble_spec`). ``ensemble`` is the number of
-            starts (0: a single filter, the paper's method); start 0 is the initial θ itself,
-            the others are random within ensemble_spread (×/÷ box around it). Every start runs
-            under every tuning of the grid ensemble_q_scales × ensemble_r_scales (factors on Q
-            and R), and the member with the best open-loop FIT is kept (on the validation data,
-            else on the training data). The default is `RUN_ENSEMBLE`: 1 start × Q {÷10, 1, ×10}
-            × R {÷10, 1, ×10}, 9 filters. Output-error runs ignore the default; changing any
+            r_scales; its ``seed`` is the run's, `ensemble_spec`); default `RUN_ENSEMBLE`.
+        substeps: RK4 steps per sample interval, one value for both estimators: the EKF's
+            prediction (`EKFTuning.substeps`) and the output-error simulations
+            (`OETuning.substeps`).
+        ensemble: number of starts of the EKF ensemble (`EnsembleSpec.members`); 0 runs a
+            single filter, the paper's method. Start 0 is the initial θ itself, the others are
+            random within ensemble_spread (×/÷ box around it). Every start runs under every
+            tuning of the grid ensemble_q_scales × ensemble_r_scales (factors on Q and R), and
+            the member with the best open-loop FIT is kept (on the validation data, else on
+            the training data). The default is `RUN_ENSEMBLE`: 1 start × Q {÷10, 1, ×10} × R
+            {÷10, 1, ×10}, 9 filters. Output-error runs ignore the default; changing any
             ensemble key with method = "output_error" is an error.
 
     Every flat key reads as an attribute too (``config.estimator.passes``), and
@@ -128,8 +132,12 @@ class EstimatorConfig(TableSection):
         _check_ensemble_keys(c, values)
         self._store(vars(values))
         if self.method == "output_error":
-            # the estimator's own cross-field rules (lr_final <= lr, ...), stated there once
-            self.output_error.check(1)
+            # the estimator's own cross-field rules (lr_final <= lr, ...), stated there once;
+            # each message starts with the field, which is the [estimator] key of that name
+            try:
+                self.output_error.check(1)
+            except TorchfricError as err:
+                raise TorchfricError(f"estimator.{err}") from None
 
     def __getattr__(self, name: str) -> Any:
         """A flat key's value (``estimator.passes`` → ``self.ekf.passes``)."""

@@ -56,7 +56,8 @@ def result_warnings(
         out.append(
             f"inertia {inertia:.4g} is {inertia / start:.3g}× the {source}'s {start:.4g}: the "
             "estimate moved far from what the data's inverse dynamics say; check model.c_m, the "
-            "units of t and q, and the filter's tuning (estimator.r, estimator.p0_theta)"
+            "units of t (seconds) and q (data.position_unit), and the filter's tuning "
+            "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
     for group in ("validation", "test"):

@@ -4,14 +4,18 @@ one-line messages (dotted key, value, what is allowed, the fix) that a bad value
 `Check` checks and normalises the fields of one section in its `__post_init__` (an int becomes a
 float where a number is expected, an array a tuple); `suggest` adds a "did you mean" to a
 misspelt name; `TableSection` is what every section provides to `torchfric.app.config`.
+Within `recording_checks`, `Check` also notes each key it checks and its bounds (`Checked`):
+the config reference (`torchfric.app.reference`) is generated from those notes.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import difflib
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, ClassVar, NoReturn
 
 from ..data.rig import EXPERIMENTS
@@ -26,8 +30,10 @@ __all__ = [
     "RIG_VALIDATION",
     "VELOCITY_SOURCES",
     "Check",
+    "Checked",
     "TableSection",
     "is_number",
+    "recording_checks",
     "show",
     "suggest",
     "unknown_section_key",
@@ -92,6 +98,35 @@ def is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
+@dataclasses.dataclass(frozen=True)
+class Checked:
+    """One key as a `Check` checked it: dotted `key`, the check's `kind` (the `Check` method:
+    "number", "integer", "auto_or_integer", "boolean", "string", "numbers" or "paths") and the
+    bounds it was given (``gt``, ``ge``, ``optional``, ``choices``, ``length``, ...)."""
+
+    key: str
+    kind: str
+    bounds: Mapping[str, Any]
+
+
+_RECORDING: contextvars.ContextVar[list[Checked] | None] = contextvars.ContextVar(
+    "torchfric_recording_checks", default=None
+)
+
+
+@contextlib.contextmanager
+def recording_checks() -> Iterator[list[Checked]]:
+    """Within the block, each key a `Check` checks is appended to the list yielded, in the order
+    checked (a key checked twice, e.g. "auto" or an integer, is noted twice: first the outer
+    check)."""
+    notes: list[Checked] = []
+    token = _RECORDING.set(notes)
+    try:
+        yield notes
+    finally:
+        _RECORDING.reset(token)
+
+
 class Check:
     """Checks and normalises the fields of one (frozen) section in its `__post_init__`."""
 
@@ -106,6 +141,11 @@ class Check:
 
     def key(self, name: str) -> str:
         return f"{self.section}.{name}" if self.section else name
+
+    def _note(self, name: str, kind: str, **bounds: Any) -> None:
+        notes = _RECORDING.get()
+        if notes is not None:
+            notes.append(Checked(self.key(name), kind, bounds))
 
     def _hint(self, name: str, example: Any) -> str:
         if example is None:
@@ -137,6 +177,7 @@ class Check:
         optional: bool = False,
         example: Any = None,
     ) -> None:
+        self._note(name, "number", gt=gt, ge=ge, optional=optional)
         value = getattr(self.obj, name)
         if value is None and optional:
             return
@@ -154,6 +195,7 @@ class Check:
     def integer(
         self, name: str, *, ge: int | None = None, optional: bool = False, example: Any = None
     ) -> None:
+        self._note(name, "integer", ge=ge, optional=optional)
         value = getattr(self.obj, name)
         if value is None and optional:
             return
@@ -167,6 +209,7 @@ class Check:
 
     def auto_or_integer(self, name: str, *, ge: int, example: int) -> None:
         """``"auto"``, or an integer >= `ge` (`integer`'s checks)."""
+        self._note(name, "auto_or_integer", ge=ge)
         value = getattr(self.obj, name)
         if value == "auto":
             return
@@ -175,11 +218,13 @@ class Check:
         self.integer(name, ge=ge)
 
     def boolean(self, name: str) -> None:
+        self._note(name, "boolean")
         value = getattr(self.obj, name)
         if not isinstance(value, bool):
             self.type_error(name, value, "true or false")
 
     def string(self, name: str, *, choices: Sequence[str] | None = None) -> str:
+        self._note(name, "string", choices=None if choices is None else tuple(choices))
         value = getattr(self.obj, name)
         listed = ", ".join(f'"{c}"' for c in choices or ())
         if not isinstance(value, str):
@@ -197,6 +242,7 @@ class Check:
         self, name: str, *, length: int | None = None, ge: float | None = None, scalar: bool = False
     ) -> None:
         """An array of finite numbers (or, with `scalar`, also one number) → tuple/float."""
+        self._note(name, "numbers", length=length, ge=ge, scalar=scalar)
         value = getattr(self.obj, name)
         if scalar and is_number(value):
             self.number(name, ge=ge)
@@ -216,6 +262,7 @@ class Check:
 
     def paths(self, name: str, *, nonempty: bool) -> None:
         """A path string or an array of them → tuple of strings; ``rig:`` names validated."""
+        self._note(name, "paths", nonempty=nonempty)
         value = getattr(self.obj, name)
         if isinstance(value, str):
             value = (value,)

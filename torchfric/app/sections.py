@@ -38,11 +38,24 @@ class DataConfig(TableSection):
         validation: records for the validation FIT after each pass and in ``metrics.json``;
             the default is ``["rig:validation"]`` for rig data and none for a user's files.
         test: extra held-out records evaluated once at the end.
-        columns: our names (t, u, q, qdot) → names in the file, e.g. ``{u = "vir", q = "qm"}``.
+        columns: our names (t, u, q, qdot) → names in the file, e.g. ``{u = "vir", q = "qm"}``;
+            a name ``"A:k"`` selects column k of a 2-D array A (NPZ and MAT files). Unmapped
+            names are looked up as themselves.
+        columns.t: the file's time column, in seconds (default: the column named t); a file
+            without one needs `time_step`.
+        columns.u: the file's input column (default: u), the signal that ``model.c_m`` turns into
+            torque or force.
+        columns.q: the file's position column (default: q), in `position_unit`.
+        columns.qdot: the file's measured velocity column (default: qdot, read when the file
+            has it), in `position_unit` per second; the estimators use it with
+            ``velocity = "measured"``.
         time_step: sample period [s] for files without a t column (checked against t otherwise).
         velocity: q̇ measurement for the estimators: "highpass" (the paper's causal
             differentiator), "zero_phase" (off-line) or "measured" (the file's qdot column).
-        velocity_cutoff_hz: cut-off of the reconstruction; ``None`` = the method's default.
+        velocity_cutoff_hz: cut-off of the reconstruction [Hz], below the Nyquist frequency
+            1/(2·time step); ``None`` = the method's default (`DEFAULT_CUTOFF_HZ`: 200 Hz for
+            "highpass", 50 Hz for "zero_phase"; a file sampled at 400 Hz or slower needs a
+            lower one with "highpass").
         position_unit: unit of q in the files (`POSITION_UNITS`); the runner converts to SI.
         start, stop: keep samples ``start <= k < stop`` of every file (``stop=None``: to the end).
         input_delay: whole samples by which the input acts late (`Experiment.delay_input`:

@@ -70,7 +70,8 @@ def _check_cutoff(cutoff_hz: float, dt: float, what: str) -> float:
     if not (0.0 < cutoff_hz < nyquist):
         raise TorchfricError(
             f"{what}: cutoff_hz = {cutoff_hz!r} Hz is not in (0, Nyquist = {nyquist:g} Hz) for "
-            f"dt = {dt:g} s; choose a cut-off below {nyquist:g} Hz"
+            f"dt = {dt:g} s; choose a cut-off below {nyquist:g} Hz (data.velocity_cutoff_hz in "
+            "a run config)"
         )
     return float(cutoff_hz)
 

@@ -90,8 +90,9 @@ def _validate(
         k = int(bad[0])
         raise TorchfricError(
             f"{where}: sampling is not uniform at index {k + 1 + offset} (step {steps[k]:.9g} s "
-            f"vs median {median:.9g} s, relative tolerance {rtol:g}); resample the record, split "
-            "it at the gap, or raise rtol"
+            f"vs median {median:.9g} s, relative tolerance {rtol:g}); resample the record, or "
+            "split it at the gap into separate files (data.train takes a list); in Python, "
+            "load_experiment's rtol widens the tolerance"
         )
 
 
@@ -187,7 +188,8 @@ class Experiment:
         if not ok or not (0 <= start and start + 2 <= stop <= self.n):
             raise TorchfricError(
                 f"{self.name}: slice({start!r}, {stop!r}) is invalid for {self.n} samples; "
-                f"expected integers 0 <= start, start + 2 <= stop <= {self.n}"
+                f"expected integers 0 <= start, start + 2 <= stop <= {self.n} (data.start, "
+                "data.stop in a run config)"
             )
         qdot = None if self.qdot is None else self.qdot[start:stop]
         return replace(
@@ -205,7 +207,7 @@ class Experiment:
         if not ok or not 0 <= samples <= self.n - 2:
             raise TorchfricError(
                 f"{self.name}: delay_input({samples!r}) is invalid for {self.n} samples; expected "
-                f"an integer 0 <= samples <= {self.n - 2}"
+                f"an integer 0 <= samples <= {self.n - 2} (data.input_delay in a run config)"
             )
         if samples == 0:
             return replace(self)

@@ -20,7 +20,7 @@ from .convert import _check_step, _one_line
 from .experiment import _COLUMNS, Experiment, _check_shapes, _validate
 from .guards import _MEMORY_FIX, _check_memory, _check_regular_file
 
-__all__ = ["load_experiment", "save_csv"]
+__all__ = ["FILE_TYPES", "load_experiment", "read_columns", "save_csv"]
 
 PathLike = str | os.PathLike[str]
 
@@ -175,6 +175,8 @@ _READERS: dict[str, Callable[[pathlib.Path], dict[str, np.ndarray]]] = {
     ".npz": _read_npz,
     ".mat": _read_mat,
 }
+FILE_TYPES: tuple[str, ...] = tuple(_READERS)
+"""The file suffixes `load_experiment` reads (compared in lower case)."""
 
 
 def _available(table: Mapping[str, np.ndarray]) -> str:
@@ -202,7 +204,8 @@ def _select(
         if not (sep and base in table and idx.strip().isascii() and idx.strip().isdigit()):
             raise TorchfricError(
                 f"{path}: no column {spec!r} (for {ours}); the file has: {_available(table)}; "
-                f"fix `columns`, e.g. columns={{{ours!r}: '<name>'}}"
+                f'map it in data.columns, e.g. data.columns.{ours} = "<name>" '
+                f"(columns={{{ours!r}: '<name>'}} in Python)"
             )
         arr, index = table[base], int(idx)
     arr = np.asarray(arr)
@@ -263,6 +266,13 @@ def _read_table(p: pathlib.Path) -> dict[str, np.ndarray]:
     return _READERS[p.suffix.lower()](p)
 
 
+def read_columns(path: PathLike) -> dict[str, np.ndarray]:
+    """Every named array of a .csv, .npz or .mat file, as `load_experiment` reads it, before
+    any column is chosen (a CSV's header names → its columns). For ``torchfric init``, which
+    maps a file's columns to ours."""
+    return _read_table(pathlib.Path(path))
+
+
 def _select_columns(
     table: Mapping[str, np.ndarray], mapping: Mapping[str, str], explicit: set[str], p: pathlib.Path
 ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
@@ -290,7 +300,8 @@ def _sample_range(
     if not ok or not 0 <= start < end <= n:
         raise TorchfricError(
             f"{p}: start={start!r}, stop={stop!r} is not a sample range of this file with {n} "
-            f"samples; expected integers 0 <= start < stop <= {n}"
+            f"samples; expected integers 0 <= start < stop <= {n} (data.start, data.stop in a "
+            "run config)"
         )
     return {key: arr[start:end] for key, arr in cols.items()}
 
@@ -331,7 +342,8 @@ def load_experiment(
         if time_step is None:
             raise TorchfricError(
                 f"{p}: no time column {mapping['t']!r} (the file has: {_available(table)}); "
-                "add a t column or give time_step=<sample period in s>"
+                "add a t column or give time_step, the sample period in s "
+                "(data.time_step in a run config)"
             )
         cols = {"t": np.arange(cols["q"].shape[0]) * time_step} | cols
         labels["t"] = f"t = arange(N)*{time_step:g}"
@@ -342,7 +354,7 @@ def load_experiment(
         if abs(step - time_step) > rtol * time_step:
             raise TorchfricError(
                 f"{p}: the time column has step {step:.9g} s but time_step = {time_step:.9g} s; "
-                "drop time_step or correct it"
+                "drop time_step (data.time_step in a run config) or correct it"
             )
     # the constructor copies each column into a tensor once (one copy, not two, at the peak)
     return Experiment(

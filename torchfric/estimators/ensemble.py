@@ -462,7 +462,7 @@ def _finish(
         first = next((r for r in ledger.reasons if r), "every member diverged")
         raise TorchfricError(
             f"every one of the {K} ensemble members diverged (member 0: {first}). Fix: start "
-            "from model.init = 'prefit', lower estimator.p0_theta or the ensemble spread"
+            "from model.init = 'prefit', lower estimator.p0_theta or estimator.ensemble_spread"
         )
     # A member that diverged after good passes keeps its last good pass (like identify_ekf's
     # last_good); it stays eligible but is reported as diverged.

@@ -122,8 +122,9 @@ def _divergence(
     return DivergenceError(
         f"EKF diverged in pass {p}, experiment {exp.name!r}, sample {fail.sample} "
         f"(t = {t_fail:.4f} s, state [q, qdot] = [{xs}]): {fail.reason}. "
-        "Fix: start from model.init = 'prefit', lower estimator.p0_theta, or check c_m "
-        "and the data units; the last good parameters are kept",
+        "Fix: start from model.init = 'prefit', lower estimator.p0_theta, or check "
+        "model.c_m and the data's units (t in seconds, q in data.position_unit); the last "
+        "good parameters are kept",
         last_good=ledger.result(0),
     )
 

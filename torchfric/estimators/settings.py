@@ -34,9 +34,15 @@ def as_vector(value: float | Sequence[float], n: int, name: str) -> Tensor:
     if t.numel() == 1:
         t = t.expand(n).clone()
     if t.numel() != n:
-        raise TorchfricError(f"{name} needs 1 or {n} values, got {t.numel()} ({value!r})")
+        raise TorchfricError(
+            f"{name} needs 1 or {n} values, got {t.numel()} ({value!r}); give one number for "
+            f"every entry or {n} (estimator.{name} in a run config)"
+        )
     if not bool(torch.isfinite(t).all()) or bool((t < 0).any()):
-        raise TorchfricError(f"{name} must be finite variances >= 0, got {value!r}")
+        raise TorchfricError(
+            f"{name} must be finite variances >= 0, got {value!r} (estimator.{name} in a run "
+            "config)"
+        )
     return t
 
 
@@ -149,7 +155,7 @@ class EnsembleSpec:
         members: random starts (member 0 is the given start itself).
         spread: every θ entry of a random start is the start's value times a log-uniform factor
             in ``[1/spread, spread]`` (log-stored entries: shifted by ``±ln spread``; a zero entry
-            stays zero). 3 is the issue's "×/÷ 3 broad box".
+            stays zero): 3 draws from a ×/÷ 3 box around the start.
         q_scales: factors applied to the whole process-noise intensity Q.
         r_scales: factors applied to the measurement variances R.
         seed: seed of the random starts.

@@ -99,7 +99,8 @@ def training_data(
         if w > 0 and w > max(d.y.shape[0] for d in data):
             raise TorchfricError(
                 f"window = {w!r} is invalid; allowed: 0 or 2 … "
-                f"{max(d.y.shape[0] for d in data)} (samples)"
+                f"{max(d.y.shape[0] for d in data)} (samples; estimator.window and the "
+                "entries of estimator.schedule in a run config)"
             )
     return data, vals
 
@@ -163,7 +164,8 @@ def draw_windows(
         longest = max(d.y.shape[0] for d in data)
         raise TorchfricError(
             f"window = {window} samples is longer than every experiment (longest {longest}); "
-            "lower window or use 0 for full-length simulation"
+            "lower window (estimator.window in a run config) or use 0 for full-length "
+            "simulation"
         )
     flat = torch.randint(total, (batch,), generator=gen).tolist()
     edges = np.cumsum([0, *counts])
