@@ -44,6 +44,7 @@ __all__ = [
     "RunLock",
     "claim_run_dir",
     "foreign_entries",
+    "next_run_dir",
 ]
 
 MARKER = ".torchfric-run"
@@ -115,6 +116,28 @@ def _mkdir_new(path: pathlib.Path) -> bool:
     return True
 
 
+def _candidates(default: pathlib.Path) -> Iterator[pathlib.Path]:
+    """The default run directories in the order they are tried: NAME, NAME-2, … NAME-9999."""
+    for i in range(1, 10_000):
+        yield default if i == 1 else default.with_name(f"{default.name}-{i}")
+
+
+def _all_taken(default: pathlib.Path) -> TorchfricError:
+    return TorchfricError(
+        f"{default}-2 … {default}-9999 all exist; clean up {default.parent} or give --out"
+    )
+
+
+def next_run_dir(default: pathlib.Path) -> pathlib.Path:
+    """The folder `claim_run_dir` would claim now for a new run without ``--out``: `default`
+    (``out_dir/NAME``) or the first free ``NAME-2``, ``NAME-3``, …; creates nothing (for
+    ``torchfric check``). A run started later claims the first one free at that moment."""
+    for path in _candidates(default):
+        if not (path.exists() or path.is_symlink()):
+            return path
+    raise _all_taken(default)
+
+
 def claim_run_dir(
     default: pathlib.Path,
     *,
@@ -146,14 +169,11 @@ def claim_run_dir(
         if overwrite:
             explicit = default
         else:
-            for i in range(1, 10_000):
-                path = default if i == 1 else default.with_name(f"{default.name}-{i}")
+            for path in _candidates(default):
                 if _mkdir_new(path):
                     _stamp(path)
                     return RunDir(path)
-            raise TorchfricError(
-                f"{default}-2 … {default}-9999 all exist; clean up {default.parent} or give --out"
-            )
+            raise _all_taken(default)
     folder = explicit
     if folder.exists() and not folder.is_dir():
         raise TorchfricError(f"--out {folder} is a file, not a folder; give a directory name")

@@ -1,0 +1,320 @@
+"""``torchfric init`` and ``torchfric check`` as a user runs them, on records written here.
+
+The records come from a small simulation of the grey-box model itself (M q̈ = c_m u − b q̇ −
+F_c tanh(q̇/v_s), M = 0.03, c_m = 16), so the pre-fit that ``check`` runs has a known answer.
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import re
+
+import numpy as np
+import pytest
+
+from torchfric.app.cli import main
+from torchfric.app.config import Config
+from torchfric.app.rundir import next_run_dir
+
+M, B, FC, C_M = 0.03, 0.02, 0.3, 16.0
+
+
+def _simulate(n: int, dt: float) -> dict[str, np.ndarray]:
+    """t, u, q, qdot of the model driven by two sines (q with 1e-4 rad of noise)."""
+    rng = np.random.default_rng(0)
+    t = np.arange(n) * dt
+    u = 0.06 * np.sin(2 * np.pi * 0.7 * t) + 0.04 * np.sin(2 * np.pi * 2.3 * t + 1.0)
+    q, qdot = np.zeros(n), np.zeros(n)
+    x = v = 0.0
+    sub = 20
+    h = dt / sub
+    for k in range(1, n):
+        for _ in range(sub):
+            a = (C_M * u[k - 1] - B * v - FC * math.tanh(v / 0.02)) / M
+            v += h * a
+            x += h * v
+        q[k], qdot[k] = x, v
+    return {"t": t, "u": u, "q": q + rng.normal(0.0, 1e-4, n), "qdot": qdot}
+
+
+@pytest.fixture(scope="module")
+def record() -> dict[str, np.ndarray]:
+    return _simulate(4000, 1e-3)
+
+
+def _write(path: pathlib.Path, header: list[str], columns: list[np.ndarray]) -> pathlib.Path:
+    table = np.column_stack(columns)
+    np.savetxt(path, table, delimiter=",", header=",".join(header), comments="", fmt="%.17g")
+    return path
+
+
+def _csv(path: pathlib.Path, rec: dict[str, np.ndarray], header=("t", "u", "q")) -> pathlib.Path:  # type: ignore[no-untyped-def]
+    keys = ["t", "u", "q", "qdot"][: len(header)]
+    return _write(path, list(header), [rec[k] for k in keys])
+
+
+def _files(folder: pathlib.Path) -> set[pathlib.Path]:
+    return {p for p in folder.rglob("*") if "cache" not in p.parts}
+
+
+def _fails(capsys: pytest.CaptureFixture[str], argv: list[str], *expected: str) -> str:
+    """Run `argv`: exit status 2 and one line ``error: ...`` holding every `expected`."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    for text in expected:
+        assert text in err, err
+    return err
+
+
+@pytest.fixture
+def user(tmp_path: pathlib.Path, native_cache: pathlib.Path, monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
+    """A user's folder as the working directory (the compiled-code cache of the test's own)."""
+    folder = tmp_path / "work"
+    folder.mkdir()
+    monkeypatch.chdir(folder)
+    return folder
+
+
+def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record, ("time", "current", "position"))
+    assert main(["init", "rec.csv", "--c-m", "16"]) == 0
+    out = capsys.readouterr().out
+    assert "4000 samples, dt 0.001 s (1000 Hz" in out
+    assert "wrote       " + str(user / "rec.toml") in out
+    cfg = Config.load(user / "rec.toml")
+    assert cfg.name == "rec" and cfg.model.c_m == C_M
+    assert cfg.data.train == (str(user / "rec.csv"),) and cfg.data.validation == ()
+    assert cfg.data.columns == {"t": "time", "u": "current", "q": "position"}
+    assert cfg.data.position_unit == "rad" and cfg.data.velocity_cutoff_hz is None
+    text = (user / "rec.toml").read_text()
+    assert 'train = ["rec.csv"]' in text  # relative to the config's folder
+    assert "docs/config.md" in text and "# validation = " in text
+
+    before = _files(user)
+    assert main(["check", "rec.toml"]) == 0
+    out = capsys.readouterr().out
+    assert _files(user) == before and not (user / "runs").exists()  # nothing written
+    assert f"rec → {pathlib.Path('runs') / 'rec'}" in out
+    assert "rec.csv: 4000 samples, dt 0.001 s (1000 Hz), 3.999 s" in out
+    assert re.search(r"^validation  none$", out, re.M)
+    assert "highpass (causal high-pass differentiator, cut-off 200 Hz)" in out
+    assert "tanh friction, size 3, 8 parameters, c_m 16 (known, fixed)" in out
+    assert "ekf: up to 10 passes (tolerance 0.0001), ensemble of 9 filters" in out
+    assert "4000 samples × 10 passes × 9 filter(s) = 360,000 filter steps" in out
+    inertia = float(re.search(r"pre-fit on the identification data: inertia (\S+),", out)[1])
+    assert inertia == pytest.approx(M, rel=0.02)  # the simulated arm's
+
+    (user / "runs" / "rec").mkdir(parents=True)  # an earlier run: the next one is rec-2
+    assert main(["check", "rec.toml", "--set", "estimator.passes=3", "--set", "estimator.ensemble=0"]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert f"rec → {pathlib.Path('runs') / 'rec-2'}" in out
+    assert "ekf: up to 3 passes (tolerance 0.0001), one filter" in out
+    assert "4000 samples × 3 passes × 1 filter(s) = 12,000 filter steps" in out
+    assert "torchfric train rec.toml --set estimator.passes=3 --set estimator.ensemble=0" in out
+    assert not (user / "runs" / "rec-2").exists()
+
+
+def test_config_in_another_folder_names_the_data_relative_to_itself(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record)
+    (user / "configs").mkdir()
+    assert main(["init", "rec.csv", "--c-m", "2.5", "--out", "configs/my.toml"]) == 0
+    assert 'train = ["../rec.csv"]' in (user / "configs" / "my.toml").read_text()
+    cfg = Config.load(user / "configs" / "my.toml")
+    assert cfg.data.train == (str(user / "rec.csv"),) and cfg.model.c_m == 2.5
+    assert cfg.data.columns == {"t": "t", "u": "u", "q": "q"}
+
+
+@pytest.mark.parametrize(
+    ("header", "columns", "unit"),
+    [
+        (("Time [s]", "Input", "Theta"), {"t": "Time [s]", "u": "Input", "q": "Theta"}, "rad"),
+        (("time_s", "CURRENT", "pos_deg"), {"t": "time_s", "u": "CURRENT", "q": "pos_deg"}, "deg"),
+        (
+            ("sec", "torque", "angle (rad)", "Velocity"),
+            {"t": "sec", "u": "torque", "q": "angle (rad)", "qdot": "Velocity"},
+            "rad",
+        ),
+        (("t", "u", "q", "dq"), {"t": "t", "u": "u", "q": "q", "qdot": "dq"}, "rad"),
+    ],
+)
+def test_alternative_column_names_map(user, record, capsys, header, columns, unit) -> None:  # type: ignore[no-untyped-def]
+    rec = dict(record)
+    if unit == "deg":
+        rec["q"] = np.degrees(rec["q"])
+    _csv(user / "rec.csv", rec, header)
+    assert main(["init", "rec.csv", "--c-m", "16"]) == 0
+    cfg = Config.load(user / "rec.toml")
+    assert cfg.data.columns == columns and cfg.data.position_unit == unit
+    if unit == "deg":  # read in degrees, converted: the same arm as in rad
+        assert main(["check", "rec.toml"]) == 0
+        out = capsys.readouterr().out
+        inertia = float(re.search(r"inertia (\S+),", out)[1])
+        assert inertia == pytest.approx(M, rel=0.02)
+
+
+def test_column_flag_and_time_step_for_a_file_without_names_or_time(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _write(user / "rec.csv", ["a", "b"], [record["u"], record["q"]])
+    err = _fails(capsys, ["init", "rec.csv", "--c-m", "16"], "cannot tell which column is t")
+    assert "--time-step SECONDS" in err and "the header is: a, b" in err
+    err = _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--time-step", "0.001"], "is u")
+    assert "--time-step" not in err and 'columns = { u = "NAME", q = "NAME" }' in err
+    argv = ["init", "rec.csv", "--c-m", "16", "--time-step", "0.001", "--column", "u=a"]
+    assert main([*argv, "--column", "q=b"]) == 0
+    cfg = Config.load(user / "rec.toml")
+    assert cfg.data.columns == {"u": "a", "q": "b"} and cfg.data.time_step == 0.001
+    assert main(["check", "rec.toml"]) == 0
+
+
+@pytest.mark.parametrize(
+    ("header", "expected"),
+    [
+        (("a", "b", "c"), ["cannot tell which column is t (time in s): none does; u (input): none "
+                           "does; q (position): none does", "the header is: a, b, c",
+                           "--column t=NAME --column u=NAME --column q=NAME (or --time-step",
+                           'columns = { t = "NAME", u = "NAME", q = "NAME" }']),
+        (("t", "pos", "position"), ["column is u (input): none does; q (position): pos and "
+                                    'position all look like it', 'columns = { t = "t", u = '
+                                    '"NAME", q = "NAME" }']),
+        (("time [ms]", "u", "q"), ["is in ms; torchfric reads t in seconds"]),
+    ],
+)  # fmt: skip
+def test_init_refuses_a_header_it_cannot_map(user, record, capsys, header, expected) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record, header)
+    before = _files(user)
+    err = _fails(capsys, ["init", "rec.csv", "--c-m", "16"], *expected)
+    assert "--column" in err or "ms" in err
+    assert _files(user) == before
+
+
+def test_init_refuses_bad_data_and_arguments_and_writes_nothing(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    rec = dict(record)
+    t = rec["t"].copy()
+    t[2000:] += 0.001  # one sample missing
+    _csv(user / "gap.csv", {**rec, "t": t})
+    q = rec["q"].copy()
+    q[1234] = np.nan
+    _csv(user / "nan.csv", {**rec, "q": q})
+    _csv(user / "rec.csv", rec)
+    (user / "taken.toml").write_text("# mine\n")
+    before = _files(user)
+    _fails(capsys, ["init", "gap.csv", "--c-m", "16"], "sampling is not uniform at index 2000")
+    _fails(capsys, ["init", "nan.csv", "--c-m", "16"], "non-finite value nan at index 1234")
+    _fails(capsys, ["init", "rec.csv"], "--c-m is required", "not estimate it")
+    _fails(capsys, ["init", "rec.csv", "--c-m", "abc"], "--c-m abc: expected a positive number")
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--out", "taken.toml"], "exists", "--force")
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--out", "rec.csv"], "names a data file")
+    _fails(capsys, ["init", "missing.csv", "--c-m", "16"], "no such file")
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--column", "x=u"], "'x' is not one of")
+    assert _files(user) == before and (user / "taken.toml").read_text() == "# mine\n"
+    assert main(["init", "rec.csv", "--c-m", "16", "--out", "taken.toml", "--force"]) == 0
+    assert Config.load(user / "taken.toml").model.c_m == C_M
+
+
+def test_split_writes_two_records_only_when_asked(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record, ("time", "u", "q", "qdot"))
+    assert main(["init", "rec.csv", "--c-m", "16", "--split", "0.75"]) == 0
+    ident, valid = user / "rec_identification.csv", user / "rec_validation.csv"
+    a = np.loadtxt(ident, delimiter=",", skiprows=1)
+    b = np.loadtxt(valid, delimiter=",", skiprows=1)
+    assert a.shape == (3000, 4) and b.shape == (1000, 4)
+    whole = np.column_stack([record[k] for k in ("t", "u", "q", "qdot")])
+    np.testing.assert_array_equal(np.vstack([a, b]), whole)  # the file's samples, unchanged
+    cfg = Config.load(user / "rec.toml")
+    assert cfg.data.train == (str(ident),) and cfg.data.validation == (str(valid),)
+    assert main(["check", "rec.toml"]) == 0
+    out = capsys.readouterr().out
+    assert "rec_validation.csv: 1000 samples" in out and "rec_identification.csv: 3000" in out
+    # a second split into the same folder would replace them: refused, nothing written
+    ident.write_text("mine\n")
+    valid.unlink()
+    before = _files(user)
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--split", "0.5", "--out", "b.toml"],
+           "rec_identification.csv, which exists", "never replaces a data file")  # fmt: skip
+    assert _files(user) == before and ident.read_text() == "mine\n"
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--split", "1.5", "--out", "b.toml"],
+           "--split 1.5: expected the identification part's fraction")  # fmt: skip
+
+
+def test_a_validation_record_beside_the_data_is_proposed_by_its_name(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    other = _simulate(1500, 1e-3)
+    _csv(user / "run1_train.csv", record)
+    _csv(user / "run1_val.csv", other)
+    _csv(user / "run2_val.csv", other)  # another run's
+    _csv(user / "slow_val.csv", _simulate(300, 1e-2))  # other sample time: never proposed
+    assert main(["init", "run1_train.csv", "--c-m", "16"]) == 0
+    assert "validation  run1_val.csv" in capsys.readouterr().out
+    cfg = Config.load(user / "run1_train.toml")
+    assert cfg.data.validation == (str(user / "run1_val.csv"),)
+    _csv(user / "solo.csv", record)
+    assert main(["init", "solo.csv", "--c-m", "16"]) == 0
+    text = (user / "solo.toml").read_text()
+    assert Config.load(user / "solo.toml").data.validation == ()
+    assert '# validation = ["run1_val.csv", "run2_val.csv"]' in text and "slow_val" not in text
+
+
+def test_units_and_slow_sampling_are_checked(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    counts = dict(record, q=np.round(record["q"] * 4096 / (2 * np.pi)))
+    _csv(user / "counts.csv", counts)
+    assert main(["init", "counts.csv", "--c-m", "16"]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "encoder counts?" in out
+        and "# Note: q holds whole numbers only" in (user / "counts.toml").read_text()
+    )
+    deg = dict(record, q=np.degrees(record["q"]))
+    _csv(user / "deg.csv", deg)
+    assert main(["init", "deg.csv", "--c-m", "16"]) == 0
+    out = capsys.readouterr().out
+    assert 'If q is in degrees set data.position_unit = "deg"' in out
+    assert Config.load(user / "deg.toml").data.position_unit == "rad"  # a note, not a change
+    _csv(user / "rad.csv", record)
+    assert main(["init", "rad.csv", "--c-m", "16"]) == 0
+    assert "note" not in capsys.readouterr().out  # 8.7 rad/s at most: nothing to say
+    _csv(user / "slow.csv", _simulate(1000, 1e-2))  # 100 Hz: the 200 Hz filter cannot run
+    assert main(["init", "slow.csv", "--c-m", "16"]) == 0
+    cfg = Config.load(user / "slow.toml")
+    assert cfg.data.velocity_cutoff_hz == 20.0  # 0.4 × the 50 Hz Nyquist frequency
+    assert main(["check", "slow.toml"]) == 0
+    assert "cut-off 20 Hz" in capsys.readouterr().out
+
+
+def test_check_refuses_a_wrong_key_and_writes_nothing(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record)
+    cfg = user / "c.toml"
+    cfg.write_text('[data]\ntrain = "rec.csv"\n[model]\nc_m = 16.0\nfricton = "tanh"\n')
+    _fails(
+        capsys, ["check", "c.toml"], 'unknown key "model.fricton"', 'did you mean "model.friction"'
+    )
+    cfg.write_text('[data]\ntrain = "rec.csv"\n[model]\nc_m = 16.0\n')
+    _fails(
+        capsys, ["check", "c.toml", "--set", "estimator.pases=3"], 'did you mean "estimator.passes"'
+    )
+    _fails(capsys, ["check", "c.toml", "--set", "data.train=nope.csv"], "no such file")
+    (user / "runs").write_text("a file where run directories would go")
+    _fails(capsys, ["check", "c.toml"], "is a file, not a folder")
+    (user / "runs").unlink()
+    assert main(["check", "c.toml"]) == 0
+    assert not (user / "runs").exists()
+
+
+def test_next_run_dir_is_the_one_claim_would_take_and_creates_nothing(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from torchfric.app.rundir import claim_run_dir
+
+    default = tmp_path / "runs" / "x"
+    assert next_run_dir(default) == default and not (tmp_path / "runs").exists()
+    default.mkdir(parents=True)
+    (tmp_path / "runs" / "x-2").write_text("a file takes the name too")
+    assert next_run_dir(default) == tmp_path / "runs" / "x-3"
+    assert not (tmp_path / "runs" / "x-3").exists()
+    assert claim_run_dir(default).path == tmp_path / "runs" / "x-3"  # the claim agrees
+
+
+def test_a_config_that_fails_its_check_is_not_written_nor_its_split_files(user, capsys) -> None:  # type: ignore[no-untyped-def]
+    n = 1000
+    still = {"t": np.arange(n) * 1e-3, "u": np.zeros(n), "q": np.zeros(n)}
+    _csv(user / "still.csv", still)  # reads fine, but nothing moves: the pre-fit refuses it
+    before = _files(user)
+    _fails(capsys, ["init", "still.csv", "--c-m", "1", "--split", "0.5"], "never move")
+    assert _files(user) == before
