@@ -88,7 +88,8 @@ def test_tensorboard_events_hold_parameters_trace_fit_and_figures(
     for key in [
         "ekf/trace_P",
         "ekf/trace_P_theta",
-        "ekf/innovation_rms/0",
+        "ekf/innovation_rms/q",
+        "ekf/innovation_rms/qdot",
         "ekf/nis",
         "validation/validation/fit_q",
     ]:
@@ -97,17 +98,19 @@ def test_tensorboard_events_hold_parameters_trace_fit_and_figures(
     assert [e.step for e in acc.Scalars("parameters/inertia")] == [0, 1, 2]
     assert [e.step for e in acc.Scalars("ekf/trace_P")] == [1, 2]
     metrics = json.loads((trained["run"] / "metrics.json").read_text())
-    last = acc.Scalars("parameters/inertia")[-1].value
-    assert last == pytest.approx(metrics["inertia"], rel=1e-6)
+    # the kept pass (best validation FIT) is one of the logged passes, with its inertia
+    kept = {e.step: e.value for e in acc.Scalars("parameters/inertia")}[metrics["best_pass"]]
+    assert kept == pytest.approx(metrics["inertia"], rel=1e-6)
     assert "friction_curve" in tags["images"] and "validation/validation" in tags["images"]
-    # figures of a short run (log.figure_every = "auto"): the start's and the final model's
-    for tag in ("friction_curve", "validation/validation"):
-        assert [e.step for e in acc.Images(tag)] == [0, 2]
+    # figures of a short run (log.figure_every = "auto"): the start's and the kept model's, at
+    # the step of its pass (the one that validated best)
+    for tag in ("friction_curve", "validation/validation", "residuals/validation"):
+        assert [e.step for e in acc.Images(tag)] == [0, metrics["best_pass"]]
 
 
-@pytest.mark.parametrize(("every", "steps"), [(1, [0, 1, 2, 3]), (2, [0, 2, 3]), (0, [0, 3])])
-def test_figures_every_n_passes_and_always_at_the_start_and_the_end(
-    tmp_path: pathlib.Path, every: int, steps: list[int]
+@pytest.mark.parametrize(("every", "steps"), [(1, {0, 1, 2, 3}), (2, {0, 2}), (0, {0})])
+def test_figures_every_n_passes_and_always_at_the_start_and_the_kept_pass(
+    tmp_path: pathlib.Path, every: int, steps: set[int]
 ) -> None:
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -116,19 +119,29 @@ def test_figures_every_n_passes_and_always_at_the_start_and_the_end(
     assert main(["train", str(cfg), "--quiet", *sets]) == 0
     acc = EventAccumulator(str(tmp_path / "runs" / "short"), size_guidance={"images": 0})
     acc.Reload()
-    for tag in ("friction_curve", "validation/validation"):
-        assert [e.step for e in acc.Images(tag)] == steps
-    # the end's figures are of the final model: the same image as a run that draws every pass
-    final = acc.Images("friction_curve")[-1].encoded_image_string
+    kept = json.loads((tmp_path / "runs" / "short" / "metrics.json").read_text())["best_pass"]
+    for tag in ("friction_curve", "validation/validation"):  # (the kept pass's come last)
+        assert sorted(e.step for e in acc.Images(tag)) == sorted(steps | {kept})
+    # the kept model's figures: the same image as that pass's in a run that draws every pass
+    final = {e.step: e.encoded_image_string for e in acc.Images("friction_curve")}[kept]
     if every == 0:
         other = EventAccumulator(str(tmp_path / "runs" / "every"), size_guidance={"images": 0})
         assert main(["train", str(cfg), "--quiet", *sets, "--set", "log.figure_every=1",
                      "--out", str(tmp_path / "runs" / "every")]) == 0  # fmt: skip
         other.Reload()
-        assert other.Images("friction_curve")[-1].encoded_image_string == final
-        assert [e.encoded_image_string for e in other.Images("friction_curve")][0] == (
-            acc.Images("friction_curve")[0].encoded_image_string
-        )
+        by_step = {e.step: e.encoded_image_string for e in other.Images("friction_curve")}
+        # the same pixels (the PNG encoder's bytes are not the point)
+        np.testing.assert_array_equal(_pixels(by_step[kept]), _pixels(final))
+        start = acc.Images("friction_curve")[0].encoded_image_string
+        np.testing.assert_array_equal(_pixels(by_step[0]), _pixels(start))
+
+
+def _pixels(png: bytes) -> np.ndarray:
+    import io
+
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(png)))
 
 
 def test_auto_figures_follow_the_clock(tmp_path: pathlib.Path, monkeypatch) -> None:
@@ -158,9 +171,16 @@ def test_resume_after_interruption_equals_uninterrupted(
     (copy / "metrics.json").unlink()
     assert main(["train", str(trained["cfg"]), "--quiet", *SHORT, "--resume", str(copy)]) == 0
     resumed = read_checkpoint(copy / "short.pt")
-    original = read_checkpoint(run / "passes" / "pass_002.pt")
+    original = read_checkpoint(run / "short.pt")
     torch.testing.assert_close(resumed["theta"], original["theta"], rtol=0, atol=1e-12)
     assert resumed["estimator"]["state"]["pass"] == 2
+    assert resumed["estimator"]["state"]["best_pass"] == original["estimator"]["state"]["best_pass"]
+    torch.testing.assert_close(
+        read_checkpoint(copy / "passes" / "pass_002.pt")["theta"],
+        read_checkpoint(run / "passes" / "pass_002.pt")["theta"],
+        rtol=0,
+        atol=1e-12,
+    )
 
 
 def test_resume_refuses_a_changed_config(
@@ -375,7 +395,8 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
         config.estimator.ekf_tuning(),
         start=(est["theta"], est["P_theta"], [PassRecord(**r) for r in est["history"]]),
     )
-    torch.testing.assert_close(resumed["theta"], reference.theta, rtol=0, atol=1e-12)
+    final = read_checkpoint(run / "passes" / "pass_002.pt")
+    torch.testing.assert_close(final["theta"], reference.theta, rtol=0, atol=1e-12)
     # Continued, not restarted: pass 1's record (its wall time included) is the killed run's.
     assert resumed["estimator"]["state"]["history"][0] == est["history"][0]
     # The same pass 1 as the uninterrupted run's, up to cross-process rounding (see above).

@@ -326,23 +326,39 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     assert scores[best] == max(scores)
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["ensemble"]["best"] == best
-    fit = metrics["validation"]["validation"]
-    train_fit = report["members"][best]["fits"]["identification"]
-    expected = 0.25 * (fit["fit_q"] + fit["fit_qdot"] + train_fit["fit_q"] + train_fit["fit_qdot"])
+    # The member was chosen by the FIT of its last pass; within it, the run keeps the pass that
+    # validates best (the mean over validation records of (FIT_q + FIT_q̇)/2).
+    ckpt = read_checkpoint(tmp_path / "runs" / "ens" / "ens.pt")
+    hist = ckpt["estimator"]["state"]["history"]
+    kept_pass = metrics["best_pass"]
+    assert ckpt["estimator"]["state"]["best_pass"] == kept_pass
+    assert hist[kept_pass - 1]["val_score"] == max(h["val_score"] for h in hist)
+    fits = report["members"][best]["fits"]
+    last = 0.5 * (fits["validation"]["fit_q"] + fits["validation"]["fit_qdot"])
+    assert hist[-1]["val_score"] == pytest.approx(last, abs=1e-6)
+    train_fit = fits["identification"]
+    expected = 0.5 * last + 0.25 * (train_fit["fit_q"] + train_fit["fit_qdot"])
     assert expected == pytest.approx(scores[best], abs=1e-6)
+    fit = metrics["validation"]["validation"]
+    kept_score = 0.5 * (fit["fit_q"] + fit["fit_qdot"])
+    assert kept_score == pytest.approx(hist[kept_pass - 1]["val_score"], abs=1e-6)
     # TensorBoard: the kept member's filter diagnostics per pass under the single filter's tags.
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     acc = EventAccumulator(str(run), size_guidance={"scalars": 0})
     acc.Reload()
     tags = set(acc.Tags()["scalars"])
-    assert {"ekf/trace_P", "ekf/nis", "ekf/innovation_rms/0", "parameters/inertia"} <= tags
+    assert {"ekf/trace_P", "ekf/nis", "ekf/innovation_rms/q", "parameters/inertia"} <= tags
     assert [e.step for e in acc.Scalars("ekf/loglik")] == [1, 2]
     kept = report["members"][best]
     assert acc.Scalars("ekf/loglik")[-1].value == pytest.approx(kept["loglik"], rel=1e-6)
-    ckpt = read_checkpoint(tmp_path / "runs" / "ens" / "ens.pt")
     snap2 = read_checkpoint(run / "passes" / "ensemble_002.pt")
-    torch.testing.assert_close(ckpt["theta"], snap2["estimator"]["state"]["thetas"][best])
+    kept_theta = torch.tensor(hist[kept_pass - 1]["theta"], dtype=torch.float64)
+    torch.testing.assert_close(ckpt["theta"], kept_theta, rtol=0, atol=0)
+    torch.testing.assert_close(
+        torch.tensor(hist[-1]["theta"], dtype=torch.float64),
+        snap2["estimator"]["state"]["thetas"][best],
+    )
 
     copy = tmp_path / "copy"
     shutil.copytree(run, copy)

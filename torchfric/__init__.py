@@ -6,6 +6,7 @@ Public API (the CLI is a thin layer over it)::
     x = torchfric.simulate(arm, t, u, x0)
     result = torchfric.identify_ekf(arm, experiments, tuning)
     arm = torchfric.load_checkpoint("checkpoints/arm_tanh_ekf.pt")
+    result = torchfric.fit("config.toml", **overrides)   # the CLI's train, same defaults
 """
 
 from typing import TYPE_CHECKING
@@ -68,6 +69,8 @@ _LAZY: dict[str, str] = {
     "read_checkpoint": "app.checkpoint",
     "save_checkpoint": "app.checkpoint",
     "export_model": "app.export",
+    "fit": "app.api",
+    "TrainResult": "app.runner",
 }
 
 if TYPE_CHECKING:  # what the names are, for type checkers and editors
@@ -144,7 +147,9 @@ __all__ = [
     "PrefitResult",
     "StribeckFriction",
     "TorchfricError",
+    "TrainResult",
     "export_model",
+    "fit",
     "fit_percent",
     "identify_ekf",
     "identify_ekf_ensemble",

@@ -1,4 +1,4 @@
-"""Command line: ``torchfric train | evaluate | simulate | export | generate``.
+"""Command line: ``torchfric init | check | train | evaluate | simulate | export | generate``.
 
 User errors (bad config, data, checkpoints, a diverging filter) print one line
 ``error: <message>`` and exit with status 2 — never a traceback.
@@ -16,33 +16,16 @@ import shlex
 import sys
 import warnings
 from collections.abc import Sequence
+from typing import Any
 
 # Nothing here imports torch at module level: `--help`, `--version` and argument errors answer
 # without it (a third of a second instead of two); each command imports what it needs.
-from ..environment import check_environment
 from ..errors import RunInterrupted, TorchfricError
 from ..files import atomic_write_text, json_safe
 from ..version import __version__
+from .api import progress_printer, torch_settings
 
 __all__ = ["main"]
-
-
-def _say_factory(quiet: bool):  # type: ignore[no-untyped-def]
-    def say(msg: str) -> None:
-        if quiet:
-            return
-        if msg.startswith("\r"):
-            if sys.stderr.isatty():
-                sys.stderr.write(msg)
-                sys.stderr.flush()
-                return
-            if not msg.endswith("\n"):
-                return  # in-pass progress only on a terminal
-            msg = msg[1:]
-        sys.stderr.write(msg if msg.endswith("\n") else msg + "\n")
-        sys.stderr.flush()
-
-    return say
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -50,6 +33,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from .runner import train
 
     cfg = Config.load(args.config, list(args.set or []))
+    bars = not args.quiet and sys.stderr.isatty()
     try:
         result = train(
             cfg,
@@ -57,7 +41,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
             resume=args.resume is not None,
             overwrite=args.overwrite,
             checkpoint=args.checkpoint,
-            say=_say_factory(args.quiet),
+            say=progress_printer(args.quiet, bars),
+            bars=sys.stderr if bars else None,
         )
     except RunInterrupted as stop:
         if stop.run_dir is not None:
@@ -67,27 +52,43 @@ def _cmd_train(args: argparse.Namespace) -> int:
                 f"--resume {shlex.quote(str(stop.run_dir))}",
             )
         raise
-    summary = {
-        "checkpoint": str(result.checkpoint),
-        "run_dir": str(result.run_dir),
-        "inertia": result.metrics["inertia"],
-        "validation": result.metrics["validation"],
-        "warnings": result.metrics["warnings"],
-    }
-    if args.json:
-        print(json.dumps(json_safe(summary)[0], indent=2, allow_nan=False))
-    elif args.quiet:  # no progress and no summary, but a result to distrust is still said
-        for w in summary["warnings"]:
-            sys.stderr.write(f"warning: {w}\n")
-    else:
-        print(f"inertia     {summary['inertia']:.6g}")
-        for name, m in summary["validation"].items():
-            print(f"validation  {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
-        for w in summary["warnings"]:
-            print(f"warning     {w}")
-        print(f"checkpoint  {summary['checkpoint']}")
-        print(f"run         {summary['run_dir']}")
+    print_result(result, as_json=args.json, copied=args.checkpoint)
     return 0
+
+
+def run_files(result: Any, copied: str | None = None) -> dict[str, str]:
+    """The files a finished run wrote, by label (the summary's last lines, ``files`` in JSON)."""
+    run = pathlib.Path(result.run_dir)
+    files = {"checkpoint": str(result.checkpoint)}
+    if copied:
+        files["copied to"] = str(copied)
+    for label, name in (("metrics", "metrics.json"), ("report", "report.html")):
+        if (run / name).exists():
+            files[label] = str(run / name)
+    files["tensorboard"] = f"tensorboard --logdir {shlex.quote(str(run))}"
+    files["run"] = str(run)
+    return files
+
+
+def print_result(result: Any, *, as_json: bool = False, copied: str | None = None) -> None:
+    """A finished run on stdout: the human summary (`torchfric.app.outcome.summary_lines`), or
+    with `as_json` its machine form (the metrics' headline keys and the files)."""
+    from .outcome import summary_lines
+
+    m = result.metrics
+    files = run_files(result, copied)
+    if as_json:
+        keys = ("name", "estimator", "inertia", "parameters", "best_pass", "converged",
+                "stopped", "validation", "test", "warnings", "seconds")  # fmt: skip
+        out = {
+            "checkpoint": str(result.checkpoint),
+            "run_dir": str(result.run_dir),
+            **{k: m[k] for k in keys if k in m},
+            "files": files,
+        }
+        print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
+        return
+    print("\n".join(summary_lines(m, files)))
 
 
 def _refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> None:
@@ -116,27 +117,30 @@ def _load_for_eval(checkpoint: str, data: str):  # type: ignore[no-untyped-def]
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from ..estimators.metrics import score_simulation
+    from .checkpoint import read_checkpoint
+    from .outcome import parameter_lines, parameter_table
 
     model, cfg, exp = _load_for_eval(args.checkpoint, args.data)
     score = score_simulation(
         model, exp, method=cfg.simulation.method, substeps=cfg.simulation.substeps
     )
+    state = read_checkpoint(args.checkpoint).get("estimator", {}).get("state", {})
     out = {
         "data": args.data,
         "samples": exp.n,
         **score.to_dict(),
-        "parameters": model.physical_parameters(),
+        # ± σ from the checkpoint's P_θθ (an EKF's kept pass); σ is null after output error
+        "parameters": parameter_table(model, state.get("P_theta")),
     }
     if args.json:
-        print(json.dumps(out, indent=2))
+        print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
     else:
         print(f"{'metric':<12}{'q':>14}{'qdot':>14}")
         print(f"{'FIT %':<12}{score.fit_q:>14.3f}{score.fit_qdot:>14.3f}")
         print(f"{'RMS':<12}{score.rms_q:>14.6g}{score.rms_qdot:>14.6g}")
         print()
-        print(f"{'parameter':<14}{'value':>16}")
-        for name, value in out["parameters"].items():
-            print(f"{name:<14}{value:>16.6g}")
+        print("parameters (value ± σ):")
+        print("\n".join(parameter_lines(out["parameters"], limit=len(out["parameters"]))))
     return 0
 
 
@@ -194,6 +198,34 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     paths = generate(args.outdir, seed=args.seed, force=args.force, integrate=lugre_integrator())
     for name, path in paths.items():
         print(f"{name}: {path}")
+    return 0
+
+
+def _cmd_init(args: argparse.Namespace) -> int:
+    from .starter import write_starter
+
+    lines = write_starter(
+        args.data,
+        c_m=args.c_m,
+        out=args.out,
+        force=args.force,
+        split=args.split,
+        columns=args.column or (),
+        time_step=args.time_step,
+    )
+    print("\n".join(lines))
+    return 0
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    from .check import check_run
+    from .config import Config
+
+    cfg = Config.load(args.config, list(args.set or []))
+    print(check_run(cfg))
+    sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
+    train = f"torchfric train {shlex.quote(args.config)}{sets}"
+    print(f"ok          nothing written; train with: {train}")
     return 0
 
 
@@ -301,8 +333,65 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_generate)
 
 
+def _add_init(sub: argparse._SubParsersAction) -> None:
+    """``torchfric init DATA --c-m VALUE``: a starter config for the user's file."""
+    p = sub.add_parser(
+        "init",
+        help="write a commented starter config for your data file",
+        description="Write a commented starter config for a data file: columns from its "
+        "header, sample time and units checked, a validation record proposed. The config "
+        "passes `torchfric check` before it is written; nothing is replaced.",
+    )
+    p.add_argument("data", help="your record: a CSV with a header line (t, u, q, ...)")
+    p.add_argument(
+        "--c-m",
+        metavar="VALUE",
+        default=None,
+        help="motor constant: torque or force per unit of u (required; not estimated)",
+    )
+    p.add_argument("--out", default=None, help="config file (default: <data stem>.toml here)")
+    p.add_argument("--force", action="store_true", help="replace --out if it exists")
+    p.add_argument(
+        "--column",
+        action="append",
+        metavar="OURS=NAME",
+        help="map one of t, u, q, qdot to the file's column NAME when the header does not tell "
+        "(repeatable)",
+    )
+    p.add_argument(
+        "--time-step",
+        type=float,
+        metavar="SECONDS",
+        default=None,
+        help="sample time of a file without a t column",
+    )
+    p.add_argument(
+        "--split",
+        metavar="FRACTION",
+        default=None,
+        help="write the first FRACTION of the file and the rest as two new CSV files beside "
+        "the config, for identification and validation (e.g. 0.7)",
+    )
+    p.set_defaults(func=_cmd_init)
+
+
+def _add_check(sub: argparse._SubParsersAction) -> None:
+    """``torchfric check CONFIG``: validate config and data; say what would run."""
+    p = sub.add_parser(
+        "check",
+        help="validate a config and its data, and show what train would run",
+        description="Check a config and its data as train does before it starts (data, "
+        "memory, the pre-fit) and show what would run. Writes nothing.",
+    )
+    p.add_argument("config", help="TOML config file")
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)"
+    )
+    p.set_defaults(func=_cmd_check)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The ``torchfric`` argument parser with its five subcommands."""
+    """The ``torchfric`` argument parser with its subcommands."""
     parser = argparse.ArgumentParser(
         prog="torchfric",
         description="Grey-box identification of machines with friction (Hensen et al.): "
@@ -310,7 +399,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"torchfric {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_add_train, _add_evaluate, _add_simulate, _add_export, _add_generate):
+    for add in (
+        _add_init,
+        _add_check,
+        _add_train,
+        _add_evaluate,
+        _add_simulate,
+        _add_export,
+        _add_generate,
+    ):
         add(sub)
     return parser
 
@@ -318,14 +415,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        env = check_environment()
-        import torch
-
-        torch.set_default_dtype(torch.float64)
-        # The filter's tensors are tiny: a thread pool only adds overhead, and with a busy second
-        # core it made small operations several times slower here. TORCHFRIC_THREADS overrides.
-        torch.set_num_threads(env["TORCHFRIC_THREADS"])
-        with warnings.catch_warnings():
+        # float64, and one thread by default: the filter's tensors are tiny, a thread pool only
+        # adds overhead, and with a busy second core it made small operations several times
+        # slower here. TORCHFRIC_THREADS overrides.
+        with torch_settings(), warnings.catch_warnings():
             warnings.simplefilter("default")
             warnings.showwarning = _show_warning
             return int(args.func(args) or 0)

@@ -16,17 +16,19 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TextIO
 
 from ..data import Experiment
+from ..estimators.ekf import MEASUREMENTS
 from ..estimators.identify import EKFResult, PassRecord
-from ..estimators.metrics import SimulationScore
+from ..estimators.metrics import SimulationScore, mean_fit
 from ..estimators.observers import Callback
 from ..estimators.output_error import EpochRecord, OEResult
 from ..models.arm import ArmModel
 from .config import Config
 from .evaluation import evaluate_model
-from .figures import friction_figure, response_figure
+from .figures import friction_figure, model_figures, pixels
+from .hparams import final_metrics, hparam_values
 
 __all__ = [
     "Printer",
@@ -42,8 +44,13 @@ __all__ = [
 Printer = Callable[[str], None]
 
 
-def ekf_scalars(record: PassRecord) -> dict[str, float]:
-    """A pass's filter diagnostics as TensorBoard scalars (`ekf/...`)."""
+# The names of the state entries [q, q̇] a filter measures (`MEASUREMENTS` gives their indices).
+CHANNELS = ("q", "qdot")
+
+
+def ekf_scalars(record: PassRecord, measure: str = "both") -> dict[str, float]:
+    """A pass's filter diagnostics as TensorBoard scalars (`ekf/...`); the innovation RMS per
+    measured channel (`estimator.measure`) by name: ``ekf/innovation_rms/q``, ``…/qdot``."""
     scalars = {
         "ekf/trace_P": record.trace_P,
         "ekf/trace_P_theta": record.trace_P_theta,
@@ -51,8 +58,9 @@ def ekf_scalars(record: PassRecord) -> dict[str, float]:
         "ekf/loglik": record.loglik,
         "ekf/rel_change": record.rel_change,
     }
-    for i, v in enumerate(record.innovation_rms):
-        scalars[f"ekf/innovation_rms/{i}"] = v
+    channels = [CHANNELS[i] for i in MEASUREMENTS[measure]]
+    for name, v in zip(channels, record.innovation_rms, strict=True):
+        scalars[f"ekf/innovation_rms/{name}"] = v
     return scalars
 
 
@@ -96,15 +104,23 @@ class ValidationScores(Callback):
 
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
         self.update(result.model)
+        # the pass's score goes into its record (and so into the snapshots): the run keeps the
+        # pass that validates best (`torchfric.app.outcome.keep_best`)
+        if not record.rolled_back:
+            record.val_score = mean_fit(self.fits)
         return None
 
 
 class TensorBoardLog(Callback):
-    """Scalars and figures in the run's TensorBoard events, under the run's fixed tags.
+    """Scalars, text, figures and hparams in the run's TensorBoard events, under fixed tags.
 
-    Scalars are written every pass or epoch. Figures (the friction curve, each validation
-    record's response) cost more to draw than a pass of the filter, so they are drawn when they
-    are looked at (`torchfric.app.sections.LogConfig`): for the starting model (step 0) and the
+    The resolved config is the text "config" (at the start); `log_hparams` adds the config's
+    keys and the final metrics at the end, in the run's own event file, so that the HParams tab
+    of ``tensorboard --logdir runs/`` compares runs. Scalars are written every pass or epoch;
+    an ensemble's members each under ``ensemble/member_<i>/`` (inertia, loglik), overlaid in
+    one chart per quantity in the Custom Scalars tab. Figures (the friction curve with its ±2σ
+    band, each validation record's response and residuals) cost more to draw than a pass of
+    the filter, so they are drawn when they are looked at (`torchfric.app.sections.LogConfig`): for the starting model (step 0) and the
     final one when the run ends (`finish`), and in between every ``log.figure_every`` passes
     or epochs ("auto": at most once a minute). A figure not drawn at its pass keeps that
     pass's model (a copy) and scores, so the end figures are those of their own steps."""
@@ -119,6 +135,9 @@ class TensorBoardLog(Callback):
         self.drawn_at = time.perf_counter()
         # figures owed, by step: the start's (step 0) and the latest pass's or epoch's
         self.owed: dict[int, Callable[[], None]] = {}
+        self.drawn: set[int] = set()  # the steps whose figures are written
+        self.members_layout = False  # the Custom Scalars layout of the ensemble's members
+        writer.add_text("config", f"```toml\n{cfg.to_toml()}```", 0)
 
     def due(self, step: int) -> bool:
         """Whether the figures of `step` are drawn now rather than at the end."""
@@ -138,15 +157,45 @@ class TensorBoardLog(Callback):
         self.owed = {k: v for k, v in self.owed.items() if k == 0}
         self.owed[step] = draw
 
-    def finish(self) -> None:
-        """The figures still owed (the start's and the final model's), drawn at the run's end."""
+    def model_pixels(
+        self, step: int, model: ArmModel, P_theta: Any, scores: dict[str, SimulationScore]
+    ) -> dict[str, Any]:
+        """`model`'s figures (`model_figures`) drawn to pixels, by tag."""
+        figs = model_figures(
+            model, self.v_max, f"pass {step}", self.cfg.data.position_unit, P_theta,
+            self.scores.validation, scores,
+        )  # fmt: skip
+        return {tag: pixels(fig) for tag, fig in figs.items()}
+
+    def add_images(self, step: int, images: dict[str, Any]) -> None:
+        """Figures drawn to pixels (`pixels`), by tag, at `step`."""
+        for tag, chw in images.items():
+            self.writer.add_image(tag, chw, step, dataformats="CHW")
+        self.drawn.add(step)
+
+    def finish(self, kept: tuple[int, dict[str, Any]] | None = None) -> None:
+        """The figures still owed, drawn at the run's end: the start's, and the final model's.
+
+        `kept` is ``(step, pixels by tag)`` of the model the run keeps (its best pass or
+        epoch), drawn once by the runner for TensorBoard and report.html alike; it takes the
+        place of the last pass's owed figures. Without it (a diverged run) the last pass's are
+        drawn."""
+        if 0 in self.owed:
+            self.owed.pop(0)()
+        if kept is not None:
+            self.owed.clear()
+            if kept[0] not in self.drawn:
+                self.add_images(*kept)
         for step in sorted(self.owed):
             self.owed.pop(step)()
         self.writer.flush()
 
-    def log_model(self, step: int, model: ArmModel, scalars: dict[str, float]) -> None:
+    def log_model(
+        self, step: int, model: ArmModel, scalars: dict[str, float], P_theta: Any = None
+    ) -> None:
         """`model`'s parameters, `scalars` and the latest validation scores; its friction curve
-        and responses (`figures`)."""
+        (with the ±2σ band of `P_theta`, θ's covariance, when given), responses and residuals
+        (`figures`)."""
         for name, value in model.physical_parameters().items():
             self.writer.add_scalar(f"parameters/{name}", value, step)
         for key, value in scalars.items():
@@ -154,22 +203,18 @@ class TensorBoardLog(Callback):
         for e, score in zip(self.scores.validation, self.scores.latest.values(), strict=True):
             self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
             self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
-        frozen, latest = copy.deepcopy(model), list(self.scores.latest.values())
-        unit = self.cfg.data.position_unit
+        frozen, latest = copy.deepcopy(model), dict(self.scores.latest)
+        band = None if P_theta is None else P_theta.detach().clone()
 
         def draw() -> None:
-            curve = friction_figure(frozen, self.v_max, f"pass {step}", unit)
-            self.writer.add_figure("friction_curve", curve, step)
-            for e, score in zip(self.scores.validation, latest, strict=True):
-                self.writer.add_figure(
-                    f"validation/{e.name}", response_figure(e, score, unit), step
-                )
+            self.add_images(step, self.model_pixels(step, frozen, band, latest))
 
         self.figures(step, draw)
         self.writer.flush()
 
     def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
-        self.log_model(record.index, result.model, ekf_scalars(record))
+        scalars = ekf_scalars(record, self.cfg.estimator.measure)
+        self.log_model(record.index, result.model, scalars, result.P_theta)
         return None
 
     def log_ensemble_result(self, result: EKFResult) -> None:
@@ -180,12 +225,13 @@ class TensorBoardLog(Callback):
         for record in result.history[:-1]:
             for key, value in {
                 **{f"parameters/{n}": v for n, v in record.parameters.items()},
-                **ekf_scalars(record),
+                **ekf_scalars(record, self.cfg.estimator.measure),
             }.items():
                 self.writer.add_scalar(key, value, record.index)
         last = result.history[-1] if result.history else None
         self.scores.update(result.model)
-        self.log_model(max(result.passes, 1), result.model, ekf_scalars(last) if last else {})
+        scalars = ekf_scalars(last, self.cfg.estimator.measure) if last else {}
+        self.log_model(max(result.passes, 1), result.model, scalars, result.P_theta)
 
     def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
         counts, inertia = ensemble_spread(self.model, state)
@@ -201,8 +247,44 @@ class TensorBoardLog(Callback):
         lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
         if lls:
             self.writer.add_scalar("ensemble/loglik_best", max(lls), pass_index)
+        self.log_members(pass_index, state["histories"])
         self.writer.flush()
         return None
+
+    def log_members(self, pass_index: int, histories: list[list[dict[str, Any]]]) -> None:
+        """Each member's inertia and log-likelihood after pass `pass_index`, under its own tags
+        (``ensemble/member_<i>/…``: one point per pass it ran; a stopped or diverged member's
+        curve ends there). Separate tags rather than ``add_scalars``, whose sub-runs would add
+        every member as a run of its own to TensorBoard's run list and HParams tab; the Custom
+        Scalars tab overlays them, one chart per quantity."""
+        if not self.members_layout:
+            self.writer.add_custom_scalars({"ensemble members": {
+                "inertia of each member": ["Multiline", [r"ensemble/member_\d+/inertia"]],
+                "log-likelihood of each member": ["Multiline", [r"ensemble/member_\d+/loglik"]],
+            }})  # fmt: skip
+            self.members_layout = True
+        for i, history in enumerate(histories):
+            if history and history[-1]["index"] == pass_index:
+                record = history[-1]
+                inertia = record["parameters"]["inertia"]
+                self.writer.add_scalar(f"ensemble/member_{i}/inertia", inertia, pass_index)
+                self.writer.add_scalar(f"ensemble/member_{i}/loglik", record["loglik"], pass_index)
+
+    def log_hparams(self, metrics: dict[str, Any]) -> None:
+        """The run's config keys (`hparam_values`) and final metrics (`final_metrics`, also
+        logged as scalars: the HParams tab reads their values from them) as hparams, in the
+        run's own event file (``SummaryWriter.add_hparams`` would write a sub-run)."""
+        from torch.utils.tensorboard.summary import hparams
+
+        final = final_metrics(metrics)
+        step = int(metrics.get("passes", metrics.get("epochs", 0)) or 0)
+        experiment, start, end = hparams(hparam_values(self.cfg.to_dict()), final)
+        events = self.writer._get_file_writer()
+        for summary in (experiment, start, end):
+            events.add_summary(summary, step)
+        for tag, value in final.items():
+            self.writer.add_scalar(tag, value, step)
+        self.writer.flush()
 
     def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
         w = self.writer
@@ -221,22 +303,78 @@ class TensorBoardLog(Callback):
                 record.index,
                 self.cfg.data.position_unit,
             )
-            self.figures(step, lambda: w.add_figure(
-                "friction_curve", friction_figure(frozen, self.v_max, title, unit), step))  # fmt: skip
+            self.figures(step, lambda: self.add_images(step, {
+                "friction_curve": pixels(friction_figure(frozen, self.v_max, title, unit))}))  # fmt: skip
         w.flush()
         return None
 
 
 class ProgressLines(Callback):
-    """The run's progress lines through `say`: within a pass (``\\r`` lines a terminal
-    overwrites), and one line after each pass, ensemble pass or validated epoch."""
+    """The run's progress on stderr: one line after each pass, ensemble pass or validated epoch
+    (through `say`), and, when `bars` is a stream (a terminal), tqdm progress bars: passes or
+    epochs with their rate and ETA, and the samples within a pass. Without bars the samples
+    within a pass are ``\\r`` lines that only a terminal shows."""
 
-    def __init__(self, cfg: Config, say: Printer, scores: ValidationScores, model: ArmModel):
+    def __init__(
+        self,
+        cfg: Config,
+        say: Printer,
+        scores: ValidationScores,
+        model: ArmModel,
+        bars: TextIO | None = None,
+    ):
         self.cfg, self.say, self.scores = cfg, say, scores
         self.model = model  # the starting model: it splits an ensemble's θ into parameters
         self.t_pass = time.perf_counter()
+        self.bars = bars
+        self._outer: Any = None  # passes or epochs
+        self._inner: Any = None  # samples of the running pass
 
+    # -- bars ----------------------------------------------------------------------------------
+    def _bar(self, **kwargs: Any) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(file=self.bars, dynamic_ncols=True, mininterval=0.2, **kwargs)
+
+    def _advance(self, index: int, unit: str, total: int, postfix: str) -> None:
+        """Move the passes (or epochs) bar to `index` of `total` and show `postfix`."""
+        if self.bars is None:
+            return
+        if self._inner is not None:
+            self._inner.close()
+            self._inner = None
+        self._open(index, unit, total)
+        self._outer.set_postfix_str(postfix, refresh=False)
+        self._outer.update(index - self._outer.n)
+        self._outer.refresh()  # once per pass: the last pass shows even when it was quick
+
+    def _open(self, index: int, unit: str, total: int) -> None:
+        """The passes (or epochs) bar, opened at the first report of `index` (so that a
+        resumed run starts where it left off)."""
+        if self._outer is None:
+            self._outer = self._bar(
+                total=total, initial=index - 1, desc=f"{unit}es" if unit == "pass" else f"{unit}s",
+                unit=unit, leave=False,
+            )  # fmt: skip
+
+    def close(self) -> None:
+        """Close the bars (the per-pass lines stay on the screen)."""
+        for bar in (self._inner, self._outer):
+            if bar is not None:
+                bar.close()
+        self._inner = self._outer = None
+
+    # -- callbacks ----------------------------------------------------------------------------
     def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
+        if self.bars is not None:
+            self._open(pass_index, "pass", self.cfg.estimator.passes)
+            if self._inner is None:
+                self._inner = self._bar(
+                    total=samples_total, desc=f"pass {pass_index}", unit="sample",
+                    unit_scale=True, leave=False,
+                )  # fmt: skip
+            self._inner.update(samples_done - self._inner.n)
+            return
         rate = samples_done / max(time.perf_counter() - self.t_pass, 1e-9)
         self.say(
             f"\r  pass {pass_index}/{self.cfg.estimator.passes}: {samples_done}/{samples_total} samples, {rate:,.0f} samples/s"
@@ -249,6 +387,10 @@ class ProgressLines(Callback):
                 f"\r  pass {record.index} lowered the innovation log-likelihood "
                 f"({record.loglik:.6g}): undone, keeping pass {record.index - 1}; stopping\n"
             )
+        self._advance(
+            record.index, "pass", self.cfg.estimator.passes,
+            f"inertia {record.parameters['inertia']:.5g}, Δθ {record.rel_change:.1e}",
+        )  # fmt: skip
         self.say(
             f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {duration(record.seconds)} "
             f"({record.samples / max(record.seconds, 1e-9):,.0f} samples/s): "
@@ -262,16 +404,21 @@ class ProgressLines(Callback):
     def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
         counts, inertia = ensemble_spread(self.model, state)
         spread = f"inertia {inertia[0]:.5g} … {inertia[-1]:.5g}" if inertia else "no member left"
+        members = ", ".join(f"{c} {s}" for s, c in counts.items())
+        self._advance(pass_index, "pass", self.cfg.estimator.passes, f"members: {members}")
         self.say(
             f"\r  pass {pass_index}/{self.cfg.estimator.passes} of {len(state['status'])} members "
-            f"done in {duration(time.perf_counter() - self.t_pass)}: "
-            + ", ".join(f"{c} {s}" for s, c in counts.items())
-            + f"; {spread}\n"
+            f"done in {duration(time.perf_counter() - self.t_pass)}: {members}; {spread}\n"
         )
         self.t_pass = time.perf_counter()
         return None
 
     def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
+        total = self.cfg.estimator.epochs + (1 if self.cfg.estimator.lbfgs_steps else 0)
+        self._advance(
+            record.index, "epoch", max(total, record.index),
+            f"loss {record.loss:.3g}, best epoch {result.best_epoch}",
+        )  # fmt: skip
         if record.val_fit is not None:
             text = fit_text(record.val_fit)
             self.say(

@@ -13,7 +13,7 @@ import pathlib
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TextIO
 
 import torch
 
@@ -21,6 +21,7 @@ from ..data import Experiment
 from ..errors import DivergenceError, RunInterrupted, TorchfricError
 from ..estimators.ensemble import identify_ekf_ensemble
 from ..estimators.identify import EKFResult, PassRecord, identify_ekf
+from ..estimators.metrics import SimulationScore
 from ..estimators.observers import CallbackList
 from ..estimators.output_error import EpochRecord, identify_output_error
 from ..files import atomic_write_text, json_safe, write_json
@@ -28,8 +29,11 @@ from ..models.arm import ArmModel
 from .checkpoint import build_checkpoint, read_checkpoint, save_checkpoint
 from .config import Config
 from .evaluation import evaluate_model, provenance, result_warnings
+from .figures import png_from_pixels
 from .loading import check_resources, config_model, initial_model, load_data
 from .observers import Printer, ProgressLines, TensorBoardLog, ValidationScores, fit_text
+from .outcome import kept_pass, kept_payload, parameter_table
+from .report import write_report
 from .rundir import RunDir, claim_run_dir, locked
 from .snapshots import (
     Snapshots,
@@ -116,13 +120,16 @@ def _run_ekf(
                 f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
             ) from None
         raise
-    extra = {
-        "passes": result.passes,
-        "converged": result.converged,
-        "samples_per_second": sum(r.samples for r in result.history)
-        / max(sum(r.seconds for r in result.history), 1e-9),
-    }
-    return result.model, ekf_payload(result, result.passes), extra
+    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg))
+    extra["samples_per_second"] = sum(r.samples for r in result.history) / max(
+        sum(r.seconds for r in result.history), 1e-9
+    )
+    return kept.model, kept_payload(kept, result, extra), extra
+
+
+def _engine(cfg: Config) -> str:
+    """The engine that scores the passes' θ on the validation records (as the ensemble's)."""
+    return "compiled" if cfg.estimator.ekf_tuning().compile else "odeint"
 
 
 def _scales(scales: tuple[float, ...]) -> str:
@@ -170,13 +177,10 @@ def _run_ensemble(
     )
     result = ens.result
     obs.tensorboard.log_ensemble_result(result)
-    extra = {
-        "passes": result.passes,
-        "converged": result.converged,
-        "samples_per_second": sum(r.samples for r in result.history) / max(ens.seconds, 1e-9),
-        "ensemble": summary,
-    }
-    return result.model, ekf_payload(result, result.passes), extra
+    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg))
+    extra["samples_per_second"] = sum(r.samples for r in result.history) / max(ens.seconds, 1e-9)
+    extra["ensemble"] = summary
+    return kept.model, kept_payload(kept, result, extra), extra
 
 
 def _run_output_error(
@@ -209,6 +213,11 @@ def _run_output_error(
     extra = {
         "epochs": result.epochs,
         "best_epoch": result.best_epoch,
+        "best_pass": result.best_epoch,
+        # output error has no filter convergence test: it has converged when its validation
+        # score stopped improving (patience ran out) before the epoch budget did
+        "converged": result.stopped_early,
+        "stopped": "early" if result.stopped_early else "budget",
         "stopped_early": result.stopped_early,
     }
     return result.model, oe_payload(result, result.epochs), extra
@@ -241,6 +250,7 @@ def train(
     overwrite: bool = False,
     checkpoint: str | pathlib.Path | None = None,
     say: Printer | None = None,
+    bars: TextIO | None = None,
 ) -> TrainResult:
     """Run the configured identification end to end; returns the fitted model and metrics.
 
@@ -249,7 +259,9 @@ def train(
     ``out_dir/name`` or a fresh ``name-2``…, or `run_dir`), the final checkpoint included as
     ``<run directory>/<name>.pt``; `checkpoint` copies it to one more, explicit path. With
     `resume`, continue from the last completed pass snapshot in `run_dir` (the result equals an
-    uninterrupted run's). Ctrl-C raises `RunInterrupted` naming the run to resume.
+    uninterrupted run's). Ctrl-C raises `RunInterrupted` naming the run to resume. `say`
+    prints the progress lines (default: stderr); `bars` is a stream for tqdm progress bars
+    (a terminal; default none).
     """
     say = say or _default_say
     torch.manual_seed(cfg.seed)
@@ -259,7 +271,7 @@ def train(
     if checkpoint is not None:
         checkpoint = pathlib.Path(checkpoint)
         _check_checkpoint_target(checkpoint)
-    run = _Run(cfg, say, time.perf_counter(), saved)
+    run = _Run(cfg, say, time.perf_counter(), saved, bars)
     run.prepare()
     claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)
     with locked(*([claim.replaces] if claim.replaces else []), claim.path):
@@ -289,9 +301,15 @@ class _Run:
     `run_in` the claimed and locked run directory."""
 
     def __init__(
-        self, cfg: Config, say: Printer, t_start: float, saved: dict[str, Any] | None
+        self,
+        cfg: Config,
+        say: Printer,
+        t_start: float,
+        saved: dict[str, Any] | None,
+        bars: TextIO | None = None,
     ) -> None:
         self.cfg, self.say, self.t_start, self.saved = cfg, say, t_start, saved
+        self.bars = bars
         self.warnings: list[str] = []
 
     def prepare(self) -> None:
@@ -314,6 +332,7 @@ class _Run:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(log_dir=str(run))
+        obs: _Observers | None = None
         try:
             model, est = self._starting_point()
             obs = self._observers(run, writer, model)
@@ -332,20 +351,19 @@ class _Run:
                 except Exception:  # noqa: BLE001 - the run's own error is the one to report
                     pass
                 raise
-            obs.tensorboard.finish()  # the figures owed: the start's and the final model's
             seconds = time.perf_counter() - self.t_start
-            metrics = self._metrics(final, extra, seconds)
+            self.covariance = state.get("P_theta")  # the kept pass's (None after output error)
+            scores = evaluate_model(final, self.val, self.cfg)
+            metrics = self._metrics(final, extra, seconds, scores)
             self._write_result(run, final, state, metrics)
+            self._write_views(run, obs, final, state, metrics, scores)
         finally:
+            if obs is not None:
+                obs.progress.close()
             writer.close()
         folder = claim.finish()
         ckpt = folder / f"{self.cfg.name}.pt"
-        self.say(
-            f"  done in {seconds:.1f} s ({metrics['estimator']}): inertia "
-            f"{metrics['inertia']:.6g}; checkpoint {ckpt}; metrics {folder / 'metrics.json'}"
-        )
-        for name, m in metrics["validation"].items():
-            self.say(f"  validation {name}: FIT q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+        self.say(f"  done in {seconds:.1f} s; run directory {folder}")
         return TrainResult(final, folder, ckpt, metrics, list(state.get("history", [])))
 
     def _say_start(self, claim: RunDir) -> None:
@@ -389,7 +407,7 @@ class _Run:
         return _Observers(
             scores,
             TensorBoardLog(cfg, writer, scores, v_max, model),
-            ProgressLines(cfg, self.say, scores, model),
+            ProgressLines(cfg, self.say, scores, model, self.bars),
             Snapshots(
                 cfg, run, self.fingerprints, scores, model, self.init_kind, self.initial_inertia
             ),
@@ -405,8 +423,39 @@ class _Run:
             + (f", {text}" if text else "")
         )
 
-    def _metrics(self, final: ArmModel, extra: dict[str, Any], seconds: float) -> dict[str, Any]:
-        """`metrics.json`: the result, its scores on validation and test data, and warnings."""
+    def _write_views(
+        self,
+        run: pathlib.Path,
+        obs: _Observers,
+        final: ArmModel,
+        state: dict[str, Any],
+        metrics: dict[str, Any],
+        scores: dict[str, SimulationScore],
+    ) -> None:
+        """What a user looks at after the run: the kept model's figures (drawn once, for
+        TensorBoard at the kept pass's step and for report.html), the figures still owed,
+        report.html, and the hparams that compare runs."""
+        step = int(metrics.get("best_pass") or 0)
+        images = obs.tensorboard.model_pixels(step, final, self.covariance, scores)
+        obs.tensorboard.finish((step, images))
+        write_report(
+            run / "report.html", title=self.cfg.name, model=final, metrics=metrics,
+            history=state.get("history", []), validation=self.val, scores=scores,
+            v_max=obs.tensorboard.v_max, unit=self.cfg.data.position_unit,
+            P_theta=self.covariance,
+            images={tag: png_from_pixels(px) for tag, px in images.items()},
+        )  # fmt: skip
+        obs.tensorboard.log_hparams(metrics)
+
+    def _metrics(
+        self,
+        final: ArmModel,
+        extra: dict[str, Any],
+        seconds: float,
+        scores: dict[str, SimulationScore],
+    ) -> dict[str, Any]:
+        """`metrics.json`: the result, its scores on validation (`scores`) and test data, and
+        warnings."""
         cfg = self.cfg
         metrics: dict[str, Any] = {
             "name": cfg.name,
@@ -416,13 +465,16 @@ class _Run:
             "seconds": seconds,
             "inertia": float(final.inertia.detach()),
             "initial_inertia": self.initial_inertia,
-            "parameters": final.physical_parameters(),
+            "parameters": parameter_table(final, self.covariance),
             "dt": self.train[0].dt,
             "validation": {},
             "test": {},
         }
-        for group, exps in (("validation", self.val), ("test", self.test)):
-            for name, score in evaluate_model(final, exps, cfg).items():
+        for group, by_name in (
+            ("validation", scores),
+            ("test", evaluate_model(final, self.test, cfg)),
+        ):
+            for name, score in by_name.items():
                 metrics[group][name] = score.to_dict()
         metrics["warnings"] = self.warnings + result_warnings(cfg, final, metrics, self.init_kind)
         return metrics

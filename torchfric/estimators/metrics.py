@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
@@ -15,6 +16,7 @@ from ..models.simulate import simulate
 __all__ = [
     "fit_percent",
     "fit_percent_batch",
+    "mean_fit",
     "rms",
     "SimulationScore",
     "score_simulation",
@@ -41,6 +43,15 @@ def fit_percent_batch(y: Tensor, y_hat: Tensor) -> Tensor:
     """
     den = (y - y.mean()).norm()
     return 100.0 * (1.0 - (y[:, None] - y_hat).norm(dim=0) / den)
+
+
+def mean_fit(fits: Mapping[str, Mapping[str, float]] | None) -> float | None:
+    """The validation score: the mean over records of (FIT_q + FIT_q̇) / 2, or None when there
+    are no scores. Both estimators keep the pass or epoch with the highest."""
+    if not fits:
+        return None
+    vals = [0.5 * (v["fit_q"] + v["fit_qdot"]) for v in fits.values()]
+    return sum(vals) / len(vals)
 
 
 def rms(y: Tensor, y_hat: Tensor) -> float:

@@ -54,7 +54,7 @@ from torch import Tensor
 from ..data import Experiment
 from ..errors import DivergenceError, TorchfricError
 from ..models.arm import ArmModel
-from .metrics import score_simulation
+from .metrics import mean_fit, score_simulation
 from .observers import OECallback
 from .settings import OETuning
 from .shooting import (
@@ -77,14 +77,6 @@ __all__ = ["OETuning", "EpochRecord", "OEResult", "OECallback", "identify_output
 ValFit = dict[str, dict[str, float]]  # {validation name: {"fit_q", "fit_qdot"}}
 
 
-def _mean_fit(val_fit: ValFit | None) -> float | None:
-    """Mean over validation experiments of (FIT_q + FIT_q̇) / 2, or None when not evaluated."""
-    if not val_fit:
-        return None
-    vals = [0.5 * (v["fit_q"] + v["fit_qdot"]) for v in val_fit.values()]
-    return sum(vals) / len(vals)
-
-
 @dataclass
 class EpochRecord:
     """Diagnostics of one epoch (index `epochs + 1` is the L-BFGS polish, with lr = 1)."""
@@ -101,7 +93,7 @@ class EpochRecord:
     @property
     def val_score(self) -> float | None:
         """Mean over validation experiments of (FIT_q + FIT_q̇) / 2, or None."""
-        return _mean_fit(self.val_fit)
+        return mean_fit(self.val_fit)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -209,7 +201,7 @@ class _BestEpoch:
     def baseline(self, theta: Tensor, val_fit: ValFit | None) -> None:
         """Epoch 0: the initial θ and its validation FIT, the score to beat."""
         self.theta = theta
-        self.score = _mean_fit(val_fit) or -math.inf  # (a score of exactly 0 counts as none)
+        self.score = mean_fit(val_fit) or -math.inf  # (a score of exactly 0 counts as none)
 
     def note(self, record: EpochRecord, theta: Tensor) -> None:
         """Take epoch `record` (θ after it: `theta`) into account."""
@@ -348,8 +340,9 @@ class _Training:
             raise DivergenceError(
                 f"output-error training diverged in epoch {index} (window {window}): loss = "
                 f"{float(loss):.4g}, gradient finite = {grads_ok}. "
-                "Fix: lower lr, use shorter windows, more substeps, or a better start "
-                "(model.init = 'prefit' or an EKF result); the last good parameters are kept",
+                "Fix: lower estimator.lr, use a shorter estimator.window, more "
+                "estimator.substeps, or a better start (model.init = 'prefit', or the "
+                "checkpoint of an EKF run); the last good parameters are kept",
                 last_good=self.result(False),
             )
 

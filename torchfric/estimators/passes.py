@@ -73,6 +73,11 @@ class PassRecord:
     seconds: float
     samples: int
     rolled_back: bool = False  # this pass lowered the log-likelihood and was undone
+    # ``P_θθ`` after the pass (estimation coordinates), so that any pass can be the kept one
+    P_theta: list[list[float]] | None = None
+    # validation score of the pass's θ: mean over the validation records of (FIT_q + FIT_q̇)/2
+    # (`torchfric.estimators.metrics.mean_fit`); None until scored, or without validation data
+    val_score: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -141,6 +146,7 @@ def pass_record(
         rel_change=rel,
         seconds=seconds,
         samples=sums.samples,
+        P_theta=sums.P_theta[i].tolist(),
     )
 
 

@@ -1,0 +1,224 @@
+"""What a run hands the user: the kept pass, parameters ± σ, the summary, `torchfric.fit` and
+the progress bars. Checked against independent computations and the run's own records."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import pathlib
+import textwrap
+
+import pytest
+import torch
+
+import torchfric
+from torchfric.app.api import fit, override_strings
+from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.cli import main
+from torchfric.app.outcome import keep_best, parameter_table, summary_lines
+from torchfric.errors import TorchfricError
+from torchfric.estimators.passes import EKFResult, PassRecord
+from torchfric.estimators.uncertainty import parameter_std
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction
+
+SHORT = {"data.stop": 1500, "data.test": [], "estimator.passes": 3, "estimator.tolerance": 0}
+
+
+def _model() -> ArmModel:
+    torch.manual_seed(0)
+    return ArmModel(friction=OddTanhFriction(2), inertia=0.03, viscous=0.01, c_m=16.0)
+
+
+def _record(model: ArmModel, index: int, shift: float, **kw: object) -> PassRecord:
+    theta = model.get_theta() + shift
+    k = theta.numel()
+    return PassRecord(
+        index=index, theta=theta.tolist(), parameters={}, trace_P=0.0, trace_P_theta=0.0,
+        innovation_rms=[0.0], nis=1.0, loglik=kw.pop("loglik", 0.0), rel_change=0.1, seconds=0.0,
+        samples=10, P_theta=(torch.eye(k) * (index + 1) * 1e-4).tolist(), **kw,
+    )  # fmt: skip
+
+
+def _result(model: ArmModel, history: list[PassRecord]) -> EKFResult:
+    last = history[-1]
+    theta = torch.tensor(last.theta)
+    fitted = type(model)(friction=OddTanhFriction(2), inertia=0.03, viscous=0.01, c_m=16.0)
+    fitted.set_theta(theta)
+    return EKFResult(fitted, theta, torch.tensor(last.P_theta), history, converged=False)
+
+
+def test_keep_best_takes_the_best_validated_pass_with_its_own_covariance() -> None:
+    model = _model()
+    hist = [
+        _record(model, 1, 0.01, val_score=80.0),
+        _record(model, 2, 0.02, val_score=91.2),
+        _record(model, 3, 0.03, val_score=85.6),
+    ]
+    kept, best = keep_best(_result(model, hist), validating=True)
+    assert best == 2
+    torch.testing.assert_close(kept.theta, torch.tensor(hist[1].theta), rtol=0, atol=0)
+    torch.testing.assert_close(kept.P_theta, torch.tensor(hist[1].P_theta), rtol=0, atol=0)
+    torch.testing.assert_close(kept.model.get_theta(), kept.theta, rtol=0, atol=0)
+    assert kept.history is hist and kept.passes == 3  # the run's history is kept whole
+
+
+def test_keep_best_skips_rolled_back_passes_and_breaks_ties_to_the_later() -> None:
+    model = _model()
+    hist = [
+        _record(model, 1, 0.01, val_score=90.0),
+        _record(model, 2, 0.02, val_score=90.0),
+        _record(model, 3, 0.03, val_score=99.0, rolled_back=True),
+    ]
+    result = _result(model, hist[:2])
+    result.history = hist
+    assert keep_best(result, validating=True)[1] == 2
+
+
+def test_without_validation_the_likelihood_decides() -> None:
+    model = _model()
+    hist = [_record(model, 1, 0.01, loglik=-5.0), _record(model, 2, 0.02, loglik=-7.0)]
+    assert keep_best(_result(model, hist), validating=False)[1] == 1
+    # the last pass, when it is the best, is returned as is
+    result = _result(model, hist[:1])
+    assert keep_best(result, validating=False) == (result, 1)
+
+
+def test_parameter_std_equals_the_delta_method_through_to_physical() -> None:
+    model = _model()
+    k = model.num_parameters
+    A = torch.randn(k, k, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    P = 1e-3 * (A @ A.T + torch.eye(k))
+    theta = model.get_theta()
+    J = torch.func.jacrev(model.to_physical)(theta)  # (k, k): independent of parameter_std
+    expected = torch.sqrt(torch.diagonal(J @ P @ J.T))
+    got = parameter_std(model, P)
+    assert list(got) == model.theta_names
+    torch.testing.assert_close(torch.tensor(list(got.values())), expected, rtol=1e-12, atol=0)
+    table = parameter_table(model, P)
+    assert table["inertia"]["value"] == pytest.approx(0.03, rel=1e-12)
+    assert table["inertia"]["std"] == pytest.approx(0.03 * math.sqrt(float(P[-1, -1])), rel=1e-12)
+    assert all(v["std"] is None for v in parameter_table(model, None).values())
+
+
+def test_override_strings_accept_sections_dotted_keys_and_top_level_keys() -> None:
+    sets = override_strings(
+        {"estimator": {"passes": 3, "r": [0.001, 0.01]}, "data.stop": 100, "name": "trial"}
+    )
+    assert sets == [
+        "estimator.passes=3",
+        "estimator.r=[0.001, 0.01]",
+        "data.stop=100",
+        'name="trial"',
+    ]
+
+
+def _config(tmp: pathlib.Path) -> pathlib.Path:
+    cfg = tmp / "short.toml"
+    cfg.write_text(
+        textwrap.dedent(
+            f"""
+            name = "short"
+            out_dir = "{(tmp / "runs").as_posix()}"
+            [data]
+            train = ["rig:identification"]
+            validation = ["rig:validation"]
+            [model]
+            friction = "tanh"
+            c_m = 16.0
+            [estimator]
+            ensemble = 0
+            """
+        )
+    )
+    return cfg
+
+
+def test_fit_runs_the_cli_train_and_keeps_the_best_validated_pass(tmp_path: pathlib.Path) -> None:
+    before = torch.get_default_dtype()
+    result = fit(_config(tmp_path), quiet=True, **SHORT)
+    assert torch.get_default_dtype() == before  # the float64 default does not leak out
+    assert result.run_dir == tmp_path / "runs" / "short"
+    m = json.loads((result.run_dir / "metrics.json").read_text())
+    assert m == json.loads(json.dumps(result.metrics))
+    # every pass was scored on the validation record; the kept one scores highest
+    hist = read_checkpoint(result.checkpoint)["estimator"]["state"]["history"]
+    scores = [h["val_score"] for h in hist]
+    assert m["best_pass"] == 1 + max(range(len(scores)), key=lambda i: (scores[i], i))
+    fit_v = m["validation"]["validation"]
+    assert 0.5 * (fit_v["fit_q"] + fit_v["fit_qdot"]) == pytest.approx(max(scores), abs=1e-9)
+    kept = torch.tensor(hist[m["best_pass"] - 1]["theta"], dtype=torch.float64)
+    torch.testing.assert_close(result.model.get_theta(), kept, rtol=0, atol=0)
+    assert m["converged"] is False and m["stopped"] == "budget"  # tolerance 0: never converges
+    # parameters ± σ from the kept pass's own covariance
+    P = torch.tensor(hist[m["best_pass"] - 1]["P_theta"], dtype=torch.float64)
+    expected = parameter_std(result.model, P)
+    for name, entry in m["parameters"].items():
+        assert entry["std"] == pytest.approx(expected[name], rel=1e-12) and entry["std"] > 0
+    assert m["inertia"] == m["parameters"]["inertia"]["value"]
+    # a second fit never overwrites the first run
+    again = fit(str(_config(tmp_path)), quiet=True, estimator={"passes": 1}, data={"stop": 1500})
+    assert again.run_dir == tmp_path / "runs" / "short-2"
+
+
+def test_fit_refuses_what_is_not_a_config() -> None:
+    with pytest.raises(TorchfricError, match="config file path or a torchfric.Config"):
+        fit(42)  # type: ignore[arg-type]
+    assert torchfric.fit is fit
+
+
+def test_train_prints_a_summary_and_json_has_sigma_best_pass_and_files(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = _config(tmp_path)
+    sets = [a for k, v in SHORT.items() for a in ("--set", f"{k}={json.dumps(v)}")]
+    assert main(["train", str(cfg), "--quiet", *sets]) == 0
+    out, err = capsys.readouterr()
+    assert err == ""  # --quiet: no progress
+    m = json.loads((tmp_path / "runs" / "short" / "metrics.json").read_text())
+    assert f"kept pass {m['best_pass']} of 3 (best validation FIT)" in out
+    assert "NOT converged" in out
+    inertia = m["parameters"]["inertia"]
+    assert f"inertia  {inertia['value']:.6g} ± {inertia['std']:.2g}" in out
+    assert "validation FIT (validation): q" in out and "report" in out
+    assert main(["train", str(cfg), "--json", "--quiet", *sets]) == 0
+    js = json.loads(capsys.readouterr().out)
+    m2 = json.loads((tmp_path / "runs" / "short-2" / "metrics.json").read_text())
+    assert js["best_pass"] == m2["best_pass"] and js["parameters"] == m2["parameters"]
+    assert set(js["parameters"]["inertia"]) == {"value", "std"}
+    assert js["converged"] is False and js["run_dir"].endswith("short-2")
+    assert pathlib.Path(js["files"]["metrics"]).is_file()
+    # evaluate shows the same σ from the checkpoint
+    assert main(["evaluate", js["checkpoint"], "rig:validation", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["parameters"] == js["parameters"]
+
+
+def test_progress_bars_show_passes_with_rate(tmp_path: pathlib.Path) -> None:
+    from torchfric.app.config import Config
+    from torchfric.app.runner import train
+
+    cfg = Config.load(_config(tmp_path), [f"{k}={json.dumps(v)}" for k, v in SHORT.items()])
+    stream, lines = io.StringIO(), []
+    train(cfg, say=lines.append, bars=stream)
+    text = stream.getvalue()
+    assert "passes" in text and ("pass/s" in text or "s/pass" in text)
+    assert "3/3" in text  # the bar reached the last pass
+    assert sum("done in" in line for line in lines) == 3 + 1  # one line per pass, one at the end
+
+
+def test_summary_lines_say_why_the_run_stopped() -> None:
+    base = {"name": "x", "estimator": "ekf", "seconds": 1.0, "passes": 4, "best_pass": 4,
+            "parameters": {"inertia": {"value": 0.03, "std": None}}, "validation": {}}  # fmt: skip
+    files = {"checkpoint": "x.pt"}
+    assert any(
+        line.startswith("converged")
+        for line in summary_lines({**base, "stopped": "converged"}, files)
+    )
+    text = "\n".join(summary_lines({**base, "stopped": "budget"}, files))
+    assert "NOT converged" in text and "all 4 passes" in text and "highest likelihood" in text
+    assert "inertia  0.03\n" in text + "\n"  # no σ: no "±"
+    oe = {**base, "epochs": 5, "stopped": "early"}
+    oe.pop("passes")
+    assert "kept epoch 4 of 5" in "\n".join(summary_lines(oe, files))

@@ -1,0 +1,260 @@
+"""report.html and the figures it shows: the autocorrelation of the residuals, the friction
+curve's ±2σ band, the parameter trajectories, and a real run's report read back as a user's
+browser would (self-contained, every parameter ± σ, the FITs of metrics.json, PNGs that decode)."""
+
+from __future__ import annotations
+
+import base64
+import html.parser
+import json
+import pathlib
+import re
+import struct
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from torchfric import ArmModel, OddTanhFriction
+from torchfric.app.cli import main
+from torchfric.app.figures import (
+    MAX_PANELS,
+    autocorrelation,
+    friction_figure,
+    png_bytes,
+    trajectory_figure,
+    whiteness_bound,
+)
+from torchfric.app.report import parameter_rows, report_html
+from torchfric.estimators.uncertainty import friction_band
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    """Width and height from a PNG's IHDR chunk (after checking the signature)."""
+    assert data[:8] == PNG and data[12:16] == b"IHDR"
+    return struct.unpack(">II", data[16:24])
+
+
+# -- autocorrelation ---------------------------------------------------------------------------
+
+
+def test_autocorrelation_equals_the_direct_sum() -> None:
+    rng = np.random.default_rng(1)
+    x = np.cumsum(rng.standard_normal(777)) + 3.0  # correlated, non-zero mean
+    d = x - x.mean()
+    direct = np.array([d[: d.size - k] @ d[k:] for k in range(51)]) / (d @ d)
+    r = autocorrelation(x, 50)
+    assert r.shape == (51,) and r[0] == pytest.approx(1.0, abs=1e-14)
+    np.testing.assert_allclose(r, direct, rtol=0, atol=1e-12)
+    # the largest lag uses one product only: linear, not circular, correlation
+    assert autocorrelation(x, 776)[-1] == pytest.approx(d[0] * d[-1] / (d @ d), abs=1e-12)
+
+
+def test_white_noise_stays_inside_its_bounds_and_a_random_walk_does_not() -> None:
+    rng = np.random.default_rng(7)
+    n, lags = 20_000, 200
+    bound = whiteness_bound(n)
+    assert bound == pytest.approx(1.96 / np.sqrt(n))
+    white = autocorrelation(rng.standard_normal(n), lags)[1:]
+    outside = np.mean(np.abs(white) > bound)
+    assert outside <= 0.10  # ≈ 5 % expected
+    # AR(1) with a = 0.8: r[k] ≈ 0.8**k, far outside the bounds for the first lags
+    e = rng.standard_normal(n)
+    ar = np.empty(n)
+    ar[0] = e[0]
+    for i in range(1, n):
+        ar[i] = 0.8 * ar[i - 1] + e[i]
+    r = autocorrelation(ar, lags)
+    np.testing.assert_allclose(r[1:6], 0.8 ** np.arange(1, 6), rtol=0, atol=0.05)
+    assert np.all(np.abs(r[1:10]) > bound)
+
+
+def test_autocorrelation_of_a_constant_and_bad_lags() -> None:
+    np.testing.assert_array_equal(autocorrelation(np.full(10, 2.5), 3), [1.0, 0.0, 0.0, 0.0])
+    for bad in (-1, 10, 2.0):
+        with pytest.raises(ValueError, match="max_lag"):
+            autocorrelation(np.arange(10.0), bad)
+
+
+# -- figures -----------------------------------------------------------------------------------
+
+
+def _arm(n: int = 3) -> ArmModel:
+    torch.manual_seed(3)
+    fric = OddTanhFriction(n, w1=torch.linspace(0.5, 20.0, n), w2=0.1 * torch.randn(n))
+    return ArmModel(fric, inertia=0.03, viscous=0.01, c_m=16.0)
+
+
+def test_friction_figure_draws_the_delta_method_band() -> None:
+    arm = _arm()
+    k = arm.num_parameters
+    a = torch.randn(k, k, dtype=torch.float64)
+    P = 1e-3 * (a @ a.T + torch.eye(k, dtype=torch.float64))
+    fig = friction_figure(arm, 4.0, "t", "rad", P)
+    ax = fig.axes[0]
+    band = ax.collections[0].get_paths()[0].vertices
+    v = torch.linspace(-4.0, 4.0, 801, dtype=torch.float64)
+    mean, std = friction_band(arm, P, v)
+    # the filled polygon runs along mean − 2σ one way and mean + 2σ back
+    for j in (0, 200, 400, 650, 800):
+        ys = band[np.isclose(band[:, 0], float(v[j]), rtol=0, atol=1e-12), 1]
+        assert min(ys) == pytest.approx(float(mean[j] - 2 * std[j]), rel=1e-9, abs=1e-12)
+        assert max(ys) == pytest.approx(float(mean[j] + 2 * std[j]), rel=1e-9, abs=1e-12)
+    assert float(std[0]) > 1e-3  # a band that is there to see
+    # the band's width has its own panel, and the legend says the widest half-width
+    width = fig.axes[1].lines[0].get_ydata()
+    np.testing.assert_allclose(width, 2 * std.numpy(), rtol=1e-12)
+    assert f"±{2 * float(std.max()):.3g}" in ax.get_legend().get_texts()[0].get_text()
+    png_bytes(fig)
+    # without a covariance (output error): one panel, no band
+    plain = friction_figure(arm, 4.0, "t")
+    assert len(plain.axes) == 1 and not plain.axes[0].collections
+    png_bytes(plain)
+
+
+def test_trajectory_figure_shows_the_arm_first_and_at_most_twelve_panels() -> None:
+    arm = _arm(30)  # 60 network weights + viscous + inertia
+    names = arm.theta_names
+    history = [
+        {"index": i, "parameters": {n: float(i + j) for j, n in enumerate(names)}, "loss": 0.1}
+        for i in range(1, 5)
+    ]
+    fig = trajectory_figure(history, best=3)
+    shown = [ax for ax in fig.axes if ax.get_visible()]
+    assert len(shown) == MAX_PANELS
+    assert [ax.get_title() for ax in shown[:3]] == ["inertia", "viscous", "W1[1]"]
+    line = shown[0].lines[0]
+    np.testing.assert_array_equal(line.get_xdata(), [1, 2, 3, 4])
+    j = names.index("inertia")
+    np.testing.assert_array_equal(line.get_ydata(), [i + j for i in range(1, 5)])
+    title = fig.get_suptitle()
+    assert "epochs" in title and "kept: epoch 3" in title
+    assert f"{len(names) - MAX_PANELS} more friction weights not shown" in title
+    assert _png_size(png_bytes(fig))[0] > 600
+    with pytest.raises(ValueError, match="history is empty"):
+        trajectory_figure([])
+
+
+# -- the report's text -------------------------------------------------------------------------
+
+
+def test_parameter_rows_take_both_shapes() -> None:
+    assert parameter_rows({"inertia": 0.5}) == [("inertia", 0.5, None)]
+    rows = parameter_rows({"a": {"value": 1.0, "std": 0.1}, "b": {"value": 2.0, "std": None}})
+    assert rows == [("a", 1.0, 0.1), ("b", 2.0, None)]
+
+
+def test_report_escapes_the_users_text_and_says_when_nothing_validates() -> None:
+    arm = _arm()
+    metrics = {
+        "name": "<b>run</b>",
+        "estimator": "output_error",
+        "epochs": 2,
+        "best_epoch": 2,
+        "parameters": {n: {"value": v, "std": None} for n, v in arm.physical_parameters().items()},
+        "validation": {},
+        "test": {},
+        "warnings": ['data "x<y>.csv" & <script>alert(1)</script>'],
+    }
+    history = [
+        {"index": i, "parameters": arm.physical_parameters(), "loss": 1.0 / i} for i in (1, 2)
+    ]
+    page = report_html(
+        title="<b>run</b>", model=arm, metrics=metrics, history=history, validation=[],
+        scores={}, v_max=3.0,
+    )  # fmt: skip
+    assert "<script>" not in page and "<b>run" not in page
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page and "&lt;b&gt;run&lt;/b&gt;" in page
+    assert 'class="warn"' in page and "Warnings (1)" in page
+    assert "No validation data" in page
+    assert "kept epoch" in page
+    for name, value in arm.physical_parameters().items():
+        assert f"<td>{name}</td><td class='num'>{value:.6g} ± –</td>" in page
+
+
+# -- a real run's report -----------------------------------------------------------------------
+
+
+class _Page(html.parser.HTMLParser):
+    """Collects the attributes that could reach outside the file, the images and the text."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.refs: list[tuple[str, str, str]] = []
+        self.images: list[str] = []
+        self.text: list[str] = []
+        self.tags: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.tags.append(tag)
+        for key, value in attrs:
+            if key in ("src", "href", "srcset", "data", "action"):
+                self.refs.append((tag, key, value or ""))
+            if tag == "img" and key == "src":
+                self.images.append(value or "")
+
+    def handle_data(self, data: str) -> None:
+        self.text.append(data)
+
+
+def _train(tmp: pathlib.Path) -> pathlib.Path:
+    cfg = tmp / "short.toml"
+    cfg.write_text(
+        textwrap.dedent(
+            f"""
+            name = "short"
+            out_dir = "{(tmp / "runs").as_posix()}"
+            [data]
+            train = ["rig:identification"]
+            validation = ["rig:validation"]
+            test = []
+            stop = 3000
+            [model]
+            friction = "tanh"
+            c_m = 16.0
+            [estimator]
+            ensemble = 0
+            passes = 2
+            tolerance = 0
+            """
+        )
+    )
+    assert main(["train", str(cfg), "--quiet"]) == 0
+    return tmp / "runs" / "short"
+
+
+def test_a_runs_report_is_self_contained_and_shows_the_runs_numbers(
+    tmp_path: pathlib.Path, native_cache: pathlib.Path
+) -> None:
+    run = _train(tmp_path)
+    metrics = json.loads((run / "metrics.json").read_text())
+    text = (run / "report.html").read_text(encoding="utf-8")
+    page = _Page()
+    page.feed(text)
+    page.close()
+    assert page.tags[:2] == ["html", "head"] and "body" in page.tags
+    # nothing outside the file: no links, every src a data: URI, no script, no http(s) anywhere
+    assert not re.search(r"https?://", text) and "<script" not in text and "<link" not in text
+    assert all(key == "src" and value.startswith("data:image/png;base64,")
+               for _, key, value in page.refs)  # fmt: skip
+    # friction curve, response and residuals of the one validation record, trajectories
+    assert len(page.images) == 4
+    sizes = [
+        _png_size(base64.b64decode(src.partition(",")[2], validate=True)) for src in page.images
+    ]
+    assert all(w >= 500 and h >= 350 for w, h in sizes)
+    body = " ".join(page.text)
+    for name, entry in metrics["parameters"].items():
+        value, std = (entry["value"], entry["std"]) if isinstance(entry, dict) else (entry, None)
+        sd = "–" if std is None else f"{std:.3g}"
+        assert f"{value:.6g} ± {sd}" in body, name
+        assert name in body
+    fits = metrics["validation"]["validation"]
+    row = re.search(r"<td>validation</td><td>validation</td>(.*?)</tr>", text).group(1)
+    cells = re.findall(r"<td class='num'>([^<]*)</td>", row)
+    assert cells[:2] == [f"{fits['fit_q']:.2f}", f"{fits['fit_qdot']:.2f}"]
+    assert float(cells[0]) == pytest.approx(fits["fit_q"], abs=0.005)
+    assert "with its ±2σ band" in body and "converged" in body
