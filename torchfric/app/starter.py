@@ -242,7 +242,9 @@ class _Plan:
 
     def __init__(self, data: pathlib.Path, out: pathlib.Path, c_m: float) -> None:
         self.data, self.out, self.folder, self.c_m = data, out, out.parent, c_m
-        stem = re.sub(r"[^A-Za-z0-9._+-]+", "_", data.stem).lstrip("._+-")[:MAX_NAME]
+        # the run is named after the config (`--out my_axis.toml` → runs/my_axis/), which by
+        # default is named after the data file
+        stem = re.sub(r"[^A-Za-z0-9._+-]+", "_", out.stem).lstrip("._+-")[:MAX_NAME]
         self.name = stem or "run"
         self.mapping: dict[str, str] = {}
         self.time_step: float | None = None
