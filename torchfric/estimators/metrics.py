@@ -131,7 +131,9 @@ def window_initial_state(q: Tensor, dt: float, n: int) -> Tensor:
         )
     t = (torch.arange(n, dtype=torch.float64) - (n - 1)) * dt
     A = torch.stack([torch.ones_like(t), t, t * t], dim=1)
-    coef = torch.linalg.lstsq(A, q[:n].unsqueeze(1)).solution.squeeze(1)
+    # "gelsd": the default "gelsy" reads an uninitialised pivot array (pytorch#71222), so its
+    # result depends on the allocator's history
+    coef = torch.linalg.lstsq(A, q[:n].unsqueeze(1), driver="gelsd").solution.squeeze(1)
     return coef[:2]
 
 

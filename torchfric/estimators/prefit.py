@@ -119,7 +119,11 @@ def _linear_skeleton(
         cols.append(v.abs())
     A = torch.stack(cols, dim=1)
     scale = A.abs().amax(0).clamp_min(1e-300)
-    sol = torch.linalg.lstsq(A / scale, (c_m * u).unsqueeze(1)).solution.squeeze(1) / scale
+    # driver="gelsd", not the default "gelsy": torch hands gelsy's pivot array (JPVT, read on
+    # entry) to LAPACK uninitialised (pytorch#71222), so its result depended on what the
+    # allocator's block held before: the pre-fit's θ changed from call to call.
+    rhs = (c_m * u).unsqueeze(1)
+    sol = torch.linalg.lstsq(A / scale, rhs, driver="gelsd").solution.squeeze(1) / scale
     return dict(zip(names, sol.tolist(), strict=True))
 
 
