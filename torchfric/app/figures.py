@@ -306,7 +306,10 @@ def trajectory_figure(history: Sequence[Any], best: int | None = None) -> Any:
             ax.plot([best], values[steps == best][:1], "o", color="C3", ms=6)
         ax.set_title(name, fontsize=9)
         ax.tick_params(labelsize=7)
-        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        # few ticks: each is a handful of artists, and eight panels' ticks were most of the
+        # figure's drawing time
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=5, integer=True))
+        ax.yaxis.set_major_locator(MaxNLocator(nbins=4))
         ax.yaxis.get_offset_text().set_fontsize(7)
         ax.grid(True, alpha=0.3)
     for ax in list(axes.flat)[len(shown) :]:

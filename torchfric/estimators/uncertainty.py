@@ -67,7 +67,9 @@ def friction_jacobian(model: ArmModel, v: Tensor, theta: Tensor | None = None) -
         th = th.detach().clone().requires_grad_(True)
         F = model.friction_torque(v, th)
         w = torch.zeros_like(F, requires_grad=True)
-        (g,) = torch.autograd.grad(F, th, w, create_graph=True)
+        # (a scalar output, not grad_outputs=w: given grad_outputs, autograd imports sympy on
+        # its first call in a process, 0.3 s)
+        (g,) = torch.autograd.grad((F * w).sum(), th, create_graph=True)
         cols = []
         for j in range(th.numel()):
             if not g[j].requires_grad:  # F does not depend on θ_j at all
