@@ -234,7 +234,9 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "train",
         help="identify a model from a TOML config",
-        description="Identify a model from a TOML config.",
+        description="Identify a model from a TOML config. Progress goes to stderr (bars on a "
+        "terminal); the summary (parameters ± σ, the kept pass, validation FIT, convergence, "
+        "warnings, the files written) to stdout.",
     )
     p.add_argument("config", help="TOML config file (see experiments/configs/)")
     p.add_argument(
@@ -267,8 +269,15 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         help="also copy the final checkpoint to PATH (replaces only a torchfric checkpoint); "
         "the one explicit way to update checkpoints/",
     )
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
-    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print the result as JSON (parameters with σ, kept pass, convergence, FITs, "
+        "warnings, files) instead of the summary",
+    )
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress on stderr (the result still prints)"
+    )
     p.set_defaults(func=_cmd_train)
 
 
