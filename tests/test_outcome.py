@@ -7,10 +7,10 @@ import io
 import json
 import math
 import pathlib
-import textwrap
 
 import pytest
 import torch
+from rig_configs import rig_config
 
 import torchfric
 from torchfric.app.api import fit, override_strings
@@ -115,24 +115,7 @@ def test_override_strings_accept_sections_dotted_keys_and_top_level_keys() -> No
 
 
 def _config(tmp: pathlib.Path) -> pathlib.Path:
-    cfg = tmp / "short.toml"
-    cfg.write_text(
-        textwrap.dedent(
-            f"""
-            name = "short"
-            out_dir = "{(tmp / "runs").as_posix()}"
-            [data]
-            train = ["rig:identification"]
-            validation = ["rig:validation"]
-            [model]
-            friction = "tanh"
-            c_m = 16.0
-            [estimator]
-            ensemble = 0
-            """
-        )
-    )
-    return cfg
+    return rig_config(tmp)
 
 
 def test_fit_runs_the_cli_train_and_keeps_the_best_validated_pass(tmp_path: pathlib.Path) -> None:

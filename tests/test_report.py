@@ -10,11 +10,11 @@ import json
 import pathlib
 import re
 import struct
-import textwrap
 
 import numpy as np
 import pytest
 import torch
+from rig_configs import rig_config
 
 from torchfric import ArmModel, OddTanhFriction
 from torchfric.app.cli import main
@@ -201,27 +201,7 @@ class _Page(html.parser.HTMLParser):
 
 
 def _train(tmp: pathlib.Path) -> pathlib.Path:
-    cfg = tmp / "short.toml"
-    cfg.write_text(
-        textwrap.dedent(
-            f"""
-            name = "short"
-            out_dir = "{(tmp / "runs").as_posix()}"
-            [data]
-            train = ["rig:identification"]
-            validation = ["rig:validation"]
-            test = []
-            stop = 3000
-            [model]
-            friction = "tanh"
-            c_m = 16.0
-            [estimator]
-            ensemble = 0
-            passes = 2
-            tolerance = 0
-            """
-        )
-    )
+    cfg = rig_config(tmp, data={"test": [], "stop": 3000}, estimator={"passes": 2, "tolerance": 0})
     assert main(["train", str(cfg), "--quiet"]) == 0
     return tmp / "runs" / "short"
 

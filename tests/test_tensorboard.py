@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 import math
 import pathlib
-import textwrap
 
 import pytest
+from rig_configs import rig_config
 
 from torchfric.app.checkpoint import read_checkpoint
 from torchfric.app.cli import main
@@ -29,27 +29,10 @@ def _events(run: pathlib.Path):  # noqa: ANN202 - tensorboard's EventAccumulator
     return acc
 
 
-def _config(tmp: pathlib.Path, name: str, estimator: str) -> pathlib.Path:
-    cfg = tmp / f"{name}.toml"
-    cfg.write_text(
-        textwrap.dedent(
-            f"""
-            name = "{name}"
-            out_dir = "{(tmp / "runs").as_posix()}"
-            [data]
-            train = ["rig:identification"]
-            validation = ["rig:validation"]
-            test = []
-            [model]
-            friction = "tanh"
-            c_m = 16.0
-            [estimator]
-            tolerance = 0
-            """
-        )
-        + textwrap.dedent(estimator)
-    )
-    return cfg
+def _config(tmp: pathlib.Path, name: str, **estimator: object) -> pathlib.Path:
+    """The rig config with `estimator`'s keys (no ensemble unless given), tolerance 0."""
+    keys = {"ensemble": None, "tolerance": 0, **estimator}
+    return rig_config(tmp, name, data={"test": []}, estimator=keys)
 
 
 def _record(innovation_rms: list[float]) -> PassRecord:
@@ -72,7 +55,7 @@ def test_innovation_channels_are_named_by_what_is_measured() -> None:
 
 
 def test_hparams_are_the_flattened_config_and_the_final_numbers(tmp_path: pathlib.Path) -> None:
-    cfg = Config.load(_config(tmp_path, "h", "passes = 3\n"))
+    cfg = Config.load(_config(tmp_path, "h", passes=3))
     values = hparam_values(cfg.to_dict())
     assert values["estimator.passes"] == 3 and values["estimator.tolerance"] == 0
     assert values["data.train"] == "[rig:identification]" and values["data.test"] == "[]"
@@ -126,7 +109,7 @@ def test_a_runs_events_hold_its_config_hparams_named_channels_and_figures(
 ) -> None:
     from tensorboard.plugins.hparams import metadata
 
-    cfg = _config(tmp_path, "short", "ensemble = 0\n")
+    cfg = _config(tmp_path, "short", ensemble=0)
     short = ["--quiet", "--set", "data.stop=3000"]
     assert main(["train", str(cfg), *short, "--set", "estimator.passes=2"]) == 0
     assert main(["train", str(cfg), *short, "--set", "estimator.passes=1"]) == 0
@@ -180,13 +163,10 @@ def test_every_ensemble_member_has_its_trajectory_over_every_pass(
 ) -> None:
     from tensorboard.plugins.custom_scalar import layout_pb2
 
-    estimator = """\
-        passes = 3
-        ensemble = 3
-        ensemble_q_scales = [1.0, 10.0]
-        ensemble_r_scales = [1.0]
-    """
-    cfg = _config(tmp_path, "ens", textwrap.dedent(estimator))
+    cfg = _config(
+        tmp_path, "ens", passes=3, ensemble=3, ensemble_q_scales=[1.0, 10.0],
+        ensemble_r_scales=[1.0],
+    )  # fmt: skip
     assert main(["train", str(cfg), "--quiet", "--set", "data.stop=1200"]) == 0
     run = tmp_path / "runs" / "ens"
     acc = _events(run)

@@ -238,13 +238,7 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
         "terminal); the summary (parameters ± σ, the kept pass, validation FIT, convergence, "
         "warnings, the files written) to stdout.",
     )
-    p.add_argument("config", help="TOML config file (see experiments/configs/)")
-    p.add_argument(
-        "--set",
-        action="append",
-        metavar="KEY=VALUE",
-        help="override a config key, e.g. --set estimator.passes=20 (repeatable)",
-    )
+    _add_config_and_sets(p)
     p.add_argument(
         "--out",
         default=None,
@@ -392,11 +386,19 @@ def _add_check(sub: argparse._SubParsersAction) -> None:
         description="Check a config and its data as train does before it starts (data, "
         "memory, the pre-fit) and show what would run. Writes nothing.",
     )
-    p.add_argument("config", help="TOML config file")
-    p.add_argument(
-        "--set", action="append", metavar="KEY=VALUE", help="override a config key (repeatable)"
-    )
+    _add_config_and_sets(p)
     p.set_defaults(func=_cmd_check)
+
+
+def _add_config_and_sets(p: argparse.ArgumentParser) -> None:
+    """The CONFIG argument and ``--set`` overrides that ``train`` and ``check`` share."""
+    p.add_argument("config", help="TOML config file (see experiments/configs/)")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
+        help="override a config key, e.g. --set estimator.passes=20 (repeatable)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -244,38 +244,7 @@ def report_html(
     created: dt.datetime | None = None,
     images: Mapping[str, bytes] | None = None,
 ) -> str:
-    """The report's HTML text; see `write_report`."""
-    created = created or dt.datetime.now()
-    best = metrics.get("best_pass", metrics.get("best_epoch"))
-    what = "epoch" if "epochs" in metrics and "passes" not in metrics else "pass"
-    figures = _figures(
-        model, P_theta, history, validation, scores, unit, v_max, best, what, images or {}
-    )
-    return (
-        '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
-        f"<title>{_e(title)} · torchfric report</title><style>{_STYLE}</style></head><body>"
-        f"<h1>{_e(title)}</h1>{_summary(metrics, title, created)}{_warnings(metrics)}"
-        f"<h2>Parameters</h2>{_parameters(metrics)}<h2>Fit</h2>{_fits(metrics)}{figures}"
-        "</body></html>\n"
-    )
-
-
-def write_report(
-    path: str | pathlib.Path,
-    *,
-    title: str,
-    model: ArmModel,
-    metrics: Mapping[str, Any],
-    history: Sequence[Any],
-    validation: Sequence[Experiment],
-    scores: Mapping[str, SimulationScore],
-    v_max: float,
-    unit: str = "rad",
-    P_theta: Tensor | None = None,
-    created: dt.datetime | None = None,
-    images: Mapping[str, bytes] | None = None,
-) -> None:
-    """Write the run's report to `path` (atomically).
+    """The run's report as one self-contained HTML page (figures inline as PNG, no scripts).
 
     Args:
         title: the run's name (the page's heading).
@@ -292,17 +261,21 @@ def write_report(
             (``friction_curve``, ``validation/NAME``, ``residuals/NAME``; see
             `torchfric.app.figures.model_figures`): used as they are instead of drawn again.
     """
-    text = report_html(
-        title=title,
-        model=model,
-        metrics=metrics,
-        history=history,
-        validation=validation,
-        scores=scores,
-        v_max=v_max,
-        unit=unit,
-        P_theta=P_theta,
-        created=created,
-        images=images,
+    created = created or dt.datetime.now()
+    best = metrics.get("best_pass", metrics.get("best_epoch"))
+    what = "epoch" if "epochs" in metrics and "passes" not in metrics else "pass"
+    figures = _figures(
+        model, P_theta, history, validation, scores, unit, v_max, best, what, images or {}
     )
-    atomic_write_text(path, text)
+    return (
+        '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+        f"<title>{_e(title)} · torchfric report</title><style>{_STYLE}</style></head><body>"
+        f"<h1>{_e(title)}</h1>{_summary(metrics, title, created)}{_warnings(metrics)}"
+        f"<h2>Parameters</h2>{_parameters(metrics)}<h2>Fit</h2>{_fits(metrics)}{figures}"
+        "</body></html>\n"
+    )
+
+
+def write_report(path: str | pathlib.Path, **content: Any) -> None:
+    """Write the run's report (`report_html` of `content`) to `path`, atomically."""
+    atomic_write_text(path, report_html(**content))
