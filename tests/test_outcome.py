@@ -205,3 +205,11 @@ def test_summary_lines_say_why_the_run_stopped() -> None:
     oe = {**base, "epochs": 5, "stopped": "early"}
     oe.pop("passes")
     assert "kept epoch 4 of 5" in "\n".join(summary_lines(oe, files))
+    # an output-error run whose epochs ran out: still improving, or best long before the end
+    oe = {**oe, "stopped": "budget"}
+    assert "still improving at the last of the 5 epochs" in "\n".join(
+        summary_lines({**oe, "best_pass": 5}, files)
+    )
+    assert "none validated better than epoch 0" in "\n".join(
+        summary_lines({**oe, "best_pass": 0}, files)
+    )

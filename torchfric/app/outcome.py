@@ -180,8 +180,10 @@ _STOPPED = {
     "steadies it)",
     "budget": "NOT converged: θ still moved by more than estimator.tolerance after all "
     "{total} {units}",
-    "budget_oe": "NOT converged: the validation score was still improving after all {total} "
-    "epochs (estimator.patience never ran out); run more, e.g. --set estimator.epochs={more}",
+    "budget_oe": "NOT converged: the validation score was still improving at the last of the "
+    "{total} epochs; run more, e.g. --set estimator.epochs={more}",
+    "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
+    "ran out, and none validated better than epoch {best}; the result is that epoch's",
     "": "",
 }
 
@@ -205,10 +207,14 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
         )
         lines.append(f"kept {unit} {best} of {total} ({why})")
     reason = metrics.get("stopped", "")
-    stopped = _STOPPED.get("budget_oe" if (unit, reason) == ("epoch", "budget") else reason, "")
+    if (unit, reason) == ("epoch", "budget"):
+        reason = "budget_oe" if best is None or best >= (total or 0) else "budget_oe_early_best"
+    stopped = _STOPPED.get(reason, "")
     if stopped:
         units = unit + ("es" if unit == "pass" else "s")
-        lines.append(stopped.format(unit=unit, total=total, units=units, more=2 * (total or 1)))
+        lines.append(
+            stopped.format(unit=unit, total=total, units=units, more=2 * (total or 1), best=best)
+        )
     table = metrics["parameters"]
     if any(v["std"] is not None for v in table.values()):
         lines.append("parameters (value ± σ):")
