@@ -213,3 +213,56 @@ def test_summary_lines_say_why_the_run_stopped() -> None:
     assert "none validated better than epoch 0" in "\n".join(
         summary_lines({**oe, "best_pass": 0}, files)
     )
+
+
+def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(
+    tmp_path: pathlib.Path,
+) -> None:
+    from torchfric.app.config import Config
+    from torchfric.app.evaluation import result_warnings
+
+    cfg = Config.load(rig_config(tmp_path))
+    model = _model()
+    P0 = cfg.estimator.ekf_tuning().initial_P_theta(model, model.get_theta())
+    metrics = {"inertia": 0.03, "initial_inertia": 0.03, "validation": {}}
+    # the prior itself: every parameter uninformed; half its variance: none
+    text = " ".join(result_warnings(cfg, model, metrics, "prefit", covariance=P0, start=model))
+    assert "hardly informed" in text and all(n in text for n in model.theta_names)
+    P = P0.clone()
+    P[0, 0] *= 0.5  # σ at 71 % of the prior: informed
+    text = " ".join(result_warnings(cfg, model, metrics, "prefit", covariance=P, start=model))
+    assert model.theta_names[0] not in text.split("informed")[-1].split(":")[0]
+    assert "hardly informed" in text  # the others still are not
+    half = 0.5 * P0
+    assert not any(
+        "informed" in w
+        for w in result_warnings(cfg, model, metrics, "prefit", covariance=half, start=model)
+    )
+    # a record simulated worse than a constant: the offset hint only when there is no offset
+    bad = {**metrics, "validation": {"v": {"fit_q": -93.0, "fit_qdot": 10.0}}}
+    assert "model.offset=0.0" in " ".join(result_warnings(cfg, model, bad, "prefit"))
+    with_offset = Config.load(rig_config(tmp_path, "off", model={"offset": 0.0}))
+    assert "model.offset" not in " ".join(result_warnings(with_offset, model, bad, "prefit"))
+
+
+def test_a_data_file_given_as_the_config_says_so(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = tmp_path / "axis.csv"
+    data.write_text("t,u,q\n0,0,0\n0.001,0,0\n")
+    assert main(["train", str(data)]) == 2
+    err = capsys.readouterr().err
+    assert "is a data file, not a config" in err and f"torchfric init {data}" in err
+    assert err.count("\n") <= 2 and "Traceback" not in err
+
+
+def test_an_ensembles_summary_says_which_member_and_what_became_of_the_others() -> None:
+    metrics = {"name": "x", "estimator": "ekf", "seconds": 1.0, "passes": 2, "best_pass": 1,
+               "stopped": "budget", "validation": {},
+               "parameters": {"inertia": {"value": 0.03, "std": 1e-5}},
+               "ensemble": {"members": 9, "status": {"running": 3, "diverged": 6}, "best": 4,
+                            "best_q_scale": 10.0, "best_r_scale": 0.1,
+                            "selected_by": "train_fit"}}  # fmt: skip
+    text = "\n".join(summary_lines(metrics, {"checkpoint": "x.pt"}))
+    assert "ensemble of 9 filters (3 ran every pass, 6 diverged); kept member 4" in text
+    assert "(Q ×10, R ×0.1) by train fit, after its 2 passes" in text

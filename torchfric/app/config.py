@@ -260,6 +260,11 @@ class Config:
                 f"config file {shorten(repr(str(p)))} {what} (working directory {os.getcwd()}); "
                 "give the path of a .toml file"
             )
+        if p.suffix.lower() in (".csv", ".npz", ".mat", ".txt", ".dat"):
+            raise TorchfricError(
+                f"{shorten(str(p))} is a data file, not a config; give a .toml config (write "
+                f"one for this file with: torchfric init {shorten(str(p))} --c-m VALUE)"
+            )
         if p.stat().st_size > MAX_CONFIG_BYTES:
             raise TorchfricError(
                 f"config file {shorten(str(p))} is {p.stat().st_size:,} bytes; a config is a few "

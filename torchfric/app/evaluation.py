@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import torch
+
 from ..data import Experiment
 from ..estimators.metrics import SimulationScore, score_simulation
 from ..models.arm import ArmModel
@@ -45,28 +47,67 @@ def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
     return []
 
 
+def _uninformed(cfg: Config, final: ArmModel, covariance: Any, start: ArmModel | None) -> list[str]:
+    """Parameters the data did not inform: their σ after the passes is still ≥ 90 % of the
+    start's (the filter's prior, `EKFTuning.initial_P_theta` at the starting θ)."""
+    if covariance is None or start is None or cfg.estimator.method != "ekf":
+        return []
+    P = torch.as_tensor(covariance, dtype=torch.float64)
+    P0 = cfg.estimator.ekf_tuning().initial_P_theta(start, start.get_theta())
+    prior, now = torch.diagonal(P0).sqrt(), torch.diagonal(P).clamp_min(0.0).sqrt()
+    names = [
+        n
+        for n, a, b in zip(final.theta_names, prior.tolist(), now.tolist(), strict=True)
+        if a > 0 and b >= 0.9 * a
+    ]
+    if not names:
+        return []
+    which = f"{names[0]}'s σ is" if len(names) == 1 else f"the σ of {', '.join(names)} are"
+    return [
+        f"the data hardly informed {', '.join(names)}: {which} still at least 90 % of the "
+        "prior's (estimator.p0_theta), so the ± shows the prior, not what the data say; a "
+        "smaller model (model.size) or richer excitation would pin it down"
+    ]
+
+
 def result_warnings(
-    cfg: Config, final: ArmModel, metrics: dict[str, Any], init_kind: str
+    cfg: Config,
+    final: ArmModel,
+    metrics: dict[str, Any],
+    init_kind: str,
+    *,
+    covariance: Any = None,
+    start: ArmModel | None = None,
 ) -> list[str]:
-    """Plain warnings about a result that is almost certainly wrong (`metrics.json` "warnings")."""
+    """Plain warnings about a result that is almost certainly wrong, or a part of it the data
+    did not inform (`metrics.json` "warnings"). `covariance` is the kept pass's P_θθ and `start`
+    the model the estimator started from (for the parameters the data left at their prior)."""
     out = []
-    inertia, start = metrics["inertia"], metrics.get("initial_inertia")
+    inertia, first = metrics["inertia"], metrics.get("initial_inertia")
     source = "pre-fit" if init_kind == "prefit" else "initial value"
-    if start and inertia > 0 and max(inertia / start, start / inertia) > 3.0:
+    if first and inertia > 0 and max(inertia / first, first / inertia) > 3.0:
         out.append(
-            f"inertia {inertia:.4g} is {inertia / start:.3g}× the {source}'s {start:.4g}: the "
+            f"inertia {inertia:.4g} is {inertia / first:.3g}× the {source}'s {first:.4g}: the "
             "estimate moved far from what the data's inverse dynamics say; check model.c_m, the "
             "units of t (seconds) and q (data.position_unit), and the filter's tuning "
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
+    out += _uninformed(cfg, final, covariance, start)
     for group in ("validation", "test"):
         for name, m in metrics.get(group, {}).items():
             fit = m.get("fit_q")
             if fit is None or not fit == fit or fit < 0.0:
+                hint = (
+                    "; when the simulation drifts one way, a constant force or torque may be "
+                    "missing (gravity on a tilted axis, a cable, an amplifier offset): try "
+                    "--set model.offset=0.0"
+                    if cfg.model.offset is None
+                    else ""
+                )
                 out.append(
                     f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
-                    "worse than a constant); the model does not simulate this record"
+                    f"worse than a constant); the model does not simulate this record{hint}"
                 )
     if (
         cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes

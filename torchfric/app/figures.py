@@ -148,10 +148,16 @@ def friction_figure(
         fig.subplots_adjust(left=0.15, right=0.97, bottom=0.1, top=0.93, hspace=0.08)
     ax.plot(v.numpy(), f, color="C0", label="friction")
     if band is not None:
+        # the curve sets the scale: a band that is wide where the data never went (a polytopic
+        # model's outer slopes reached ±754 N on EMPS) is cut at the frame, not allowed to
+        # flatten the curve into a line; its width is in the panel below
+        span = float(f.max() - f.min()) or 1.0
+        ax.set_ylim(float(f.min()) - 0.3 * span, float(f.max()) + 0.3 * span)
         ax.legend(loc="upper left")
     else:
         ax.set_xlabel(f"velocity q̇ [{si_unit(unit)}/s]")
-    ax.set_ylabel(f"friction b·q̇ + C(q̇) + offset [{force}]")
+    offset = " + offset" if "offset" in model.physical_parameters() else ""
+    ax.set_ylabel(f"friction b·q̇ + C(q̇){offset} [{force}]")
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
     return fig

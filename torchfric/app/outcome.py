@@ -197,6 +197,15 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     unit = "epoch" if "epochs" in metrics else "pass"
     best = metrics.get("best_pass")
     lines.append(f"torchfric: {metrics.get('name', '')} ({est}) in {metrics['seconds']:.1f} s")
+    ens = metrics.get("ensemble")
+    if ens:
+        words = {"running": "ran every pass", "rolled_back": "stopped at a worse pass"}
+        status = ", ".join(f"{c} {words.get(s, s)}" for s, c in ens["status"].items())
+        lines.append(
+            f"ensemble of {ens['members']} filters ({status}); kept member {ens['best']} "
+            f"(Q ×{ens['best_q_scale']:g}, R ×{ens['best_r_scale']:g}) by "
+            f"{ens['selected_by'].replace('_', ' ')}, after its {total} passes"
+        )
     if best is not None and total:
         why = (
             "best validation FIT"

@@ -476,7 +476,9 @@ class _Run:
         ):
             for name, score in by_name.items():
                 metrics[group][name] = score.to_dict()
-        metrics["warnings"] = self.warnings + result_warnings(cfg, final, metrics, self.init_kind)
+        metrics["warnings"] = self.warnings + result_warnings(
+            cfg, final, metrics, self.init_kind, covariance=self.covariance, start=self.model
+        )
         return metrics
 
     def _write_result(
