@@ -10,6 +10,7 @@ pre-fit's compiled code may be added to the compiled-code cache, ``TORCHFRIC_CAC
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
 
@@ -175,6 +176,7 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     if test:
         lines += _records("test", test, d.test)
     lines.append(_line("velocity", _velocity(cfg)))
+    lines.append(_line("units", _units(d.position_unit, train)))
     if d.position_unit != "rad" or d.start or d.stop is not None or d.input_delay:
         span = f"samples {d.start} … {'end' if d.stop is None else d.stop - 1}"
         lines.append(
@@ -186,3 +188,18 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     if warnings is not None:
         warnings.extend(found)
     return "\n".join(lines)
+
+
+def _units(unit: str, train: list[Experiment]) -> str:
+    """The units the data are read in, with the identification data's top speed in them: the
+    number that shows a position in degrees (or mm) read as rad (or m) at a glance."""
+    si = "m" if unit in ("m", "mm") else "rad"
+    speeds = [float(e.qdot.abs().max()) for e in train if e.qdot is not None and e.n]
+    if not speeds:
+        return f"t in s, q in {unit} (read as {si})"
+    v = max(speeds)
+    rpm = f" = {v * 60 / (2 * math.pi):,.0f} rpm" if si == "rad" else ""
+    return (
+        f"t in s, q in {unit}: |q̇| reaches {v:.3g} {si}/s{rpm} in the identification data; "
+        "if your machine never moves that fast, set data.position_unit"
+    )

@@ -114,10 +114,13 @@ def result_warnings(
         and metrics.get("converged") is False
         and metrics.get("passes", 0) >= cfg.estimator.passes
     ):
+        change = metrics.get("last_change")
+        moving = f"θ still changing by {change:.2g} a pass, " if change is not None else ""
         out.append(
-            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) without "
-            f"converging to estimator.tolerance = {cfg.estimator.tolerance:g}; raise "
-            "estimator.passes or check the tuning"
+            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with "
+            f"{moving}above estimator.tolerance = {cfg.estimator.tolerance:g}: raise "
+            "estimator.passes if the validation FIT was still rising at the last pass "
+            "(report.html, TensorBoard); otherwise the kept pass stands"
         )
     return out
 

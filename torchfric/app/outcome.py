@@ -112,7 +112,10 @@ def keep_best(result: EKFResult, *, validating: bool) -> tuple[EKFResult, int]:
 
 
 def kept_pass(
-    result: EKFResult, validation: Sequence[Experiment], engine: str = "odeint"
+    result: EKFResult,
+    validation: Sequence[Experiment],
+    engine: str = "odeint",
+    tolerance: float | None = None,
 ) -> tuple[EKFResult, dict[str, Any]]:
     """The pass of an EKF run to keep (`keep_best`, after `score_passes` with `engine`) and
     the metrics that say which, and why the passes ended ("stopped": converged, rolled_back
@@ -131,6 +134,9 @@ def kept_pass(
         "best_pass": best,
         "converged": result.converged,
         "stopped": stopped,
+        # ‖Δθ‖/‖θ‖ of the last pass: how far from estimator.tolerance the run stopped
+        "last_change": last.rel_change if last is not None else None,
+        "tolerance": tolerance,
     }
 
 
@@ -178,14 +184,18 @@ _STOPPED = {
     "rolled_back": "stopped: the last {unit} lowered the innovation likelihood and was undone "
     "(the filter is at its best fit of the data; a smaller estimator.p0_theta or q_theta "
     "steadies it)",
-    "budget": "NOT converged: θ still moved by more than estimator.tolerance after all "
-    "{total} {units}",
+    "budget": "NOT converged: after all {total} {units} θ still changed by {change} a pass "
+    "(estimator.tolerance {tolerance}); the kept pass is the one that validated best",
     "budget_oe": "NOT converged: the validation score was still improving at the last of the "
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
     "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
     "ran out, and none validated better than epoch {best}; the result is that epoch's",
     "": "",
 }
+
+
+def _g(x: float | None) -> str:
+    return "?" if x is None else f"{x:.2g}"
 
 
 def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
@@ -222,7 +232,15 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     if stopped:
         units = unit + ("es" if unit == "pass" else "s")
         lines.append(
-            stopped.format(unit=unit, total=total, units=units, more=2 * (total or 1), best=best)
+            stopped.format(
+                unit=unit,
+                total=total,
+                units=units,
+                more=2 * (total or 1),
+                best=best,
+                change=_g(metrics.get("last_change")),
+                tolerance=_g(metrics.get("tolerance")),
+            )  # fmt: skip
         )
     table = metrics["parameters"]
     if any(v["std"] is not None for v in table.values()):

@@ -120,7 +120,7 @@ def _run_ekf(
                 f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
             ) from None
         raise
-    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg))
+    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg), cfg.estimator.tolerance)
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(
         sum(r.seconds for r in result.history), 1e-9
     )
@@ -177,7 +177,7 @@ def _run_ensemble(
     )
     result = ens.result
     obs.tensorboard.log_ensemble_result(result)
-    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg))
+    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg), cfg.estimator.tolerance)
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(ens.seconds, 1e-9)
     extra["ensemble"] = summary
     return kept.model, kept_payload(kept, result, extra), extra
