@@ -266,3 +266,19 @@ def test_an_ensembles_summary_says_which_member_and_what_became_of_the_others() 
     text = "\n".join(summary_lines(metrics, {"checkpoint": "x.pt"}))
     assert "ensemble of 9 filters (3 ran every pass, 6 diverged); kept member 4" in text
     assert "(Q ×10, R ×0.1) by train fit, after its 2 passes" in text
+
+
+def test_without_validation_the_identification_records_are_scored_and_said_to_flatter(
+    tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cfg = rig_config(tmp_path, data={"validation": [], "test": [], "stop": 1500},
+                     estimator={"passes": 2, "tolerance": 0})  # fmt: skip
+    assert main(["train", str(cfg), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    m = json.loads((tmp_path / "runs" / "short" / "metrics.json").read_text())
+    assert m["validation"] == {} and set(m["identification"]) == {"identification"}
+    fit_q = m["identification"]["identification"]["fit_q"]
+    assert f"identification FIT (identification): q {fit_q:.2f} %" in out
+    assert "highest likelihood" in out and "flatters the model" in out
+    page = (tmp_path / "runs" / "short" / "report.html").read_text(encoding="utf-8")
+    assert "flatters the model" in page and f"{fit_q:.2f}" in page

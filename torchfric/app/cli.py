@@ -79,7 +79,7 @@ def print_result(result: Any, *, as_json: bool = False, copied: str | None = Non
     files = run_files(result, copied)
     if as_json:
         keys = ("name", "estimator", "inertia", "parameters", "best_pass", "converged",
-                "stopped", "validation", "test", "warnings", "seconds")  # fmt: skip
+                "stopped", "validation", "test", "identification", "warnings", "seconds")  # fmt: skip
         out = {
             "checkpoint": str(result.checkpoint),
             "run_dir": str(result.run_dir),
@@ -103,41 +103,88 @@ def _refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> 
         raise TorchfricError(f"--out {out} exists; give a new file name, or --force to replace it")
 
 
-def _load_for_eval(checkpoint: str, data: str):  # type: ignore[no-untyped-def]
-    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
-    from .loading import load_record
+def _load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """(model, config, experiment, unit) for ``evaluate`` and ``simulate``: the record
+    ``args.data`` read as the run read its records — the checkpoint's data config with
+    ``--column`` and ``--position-unit`` in place of its columns and unit, the input delay
+    applied — and the SI unit of its q. The training's sample range does not apply. A warning
+    on stderr when the model's axis (linear or rotary) is not the record's."""
+    import re
 
-    model = load_checkpoint(checkpoint)
-    cfg = checkpoint_config(read_checkpoint(checkpoint))
-    # The training's sample range does not apply to the file being evaluated.
-    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, start=0, stop=None))
-    exp, _ = load_record(cfg, data)
-    return model, cfg, exp
+    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
+    from .config import RIG_PREFIX
+    from .figures import si_unit
+    from .loading import load_record
+    from .starter import parse_columns
+
+    columns = parse_columns(args.column) if args.column else None
+    rig = args.data.startswith(RIG_PREFIX)
+    if rig and (columns is not None or args.position_unit):
+        flag = "--column" if columns is not None else "--position-unit"
+        raise TorchfricError(
+            f"{flag} is for a data file; {args.data} is the built-in rig's record (q in rad), "
+            f"read as it is: leave {flag} out"
+        )
+    model = load_checkpoint(args.checkpoint)
+    cfg = checkpoint_config(read_checkpoint(args.checkpoint))
+    trained_in = cfg.data.position_unit
+    data = dataclasses.replace(
+        cfg.data,
+        start=0,
+        stop=None,
+        columns=cfg.data.columns if columns is None else columns,
+        position_unit=args.position_unit or trained_in,
+    )
+    cfg = dataclasses.replace(cfg, data=data)
+    unit = si_unit("rad" if rig else data.position_unit)
+    if unit != si_unit(trained_in):
+        axis = {"m": "a linear axis", "rad": "a rotary axis"}
+        read = "the rig's arm" if rig else f"--position-unit {data.position_unit}"
+        sys.stderr.write(
+            f"warning: the model was identified on {axis[si_unit(trained_in)]} (data.position_unit"
+            f" = {trained_in!r}, q in {si_unit(trained_in)}) but {args.data} is {axis[unit]} "
+            f"({read}, q in {unit}); the scores compare unlike quantities\n"
+        )
+    try:
+        exp, _ = load_record(cfg, args.data)
+    except TorchfricError as err:
+        if "data.columns" not in str(err):
+            raise
+        found = re.search(r"\(for (\w+)\)|no (qdot) column", str(err))
+        role = next((g for g in found.groups() if g), "q") if found else "q"
+        raise TorchfricError(
+            f"{err}; here: --column {role}=NAME (repeatable; it replaces the checkpoint's "
+            "data.columns, so map every column the file names differently)"
+        ) from None
+    if cfg.data.input_delay:  # as the run scored its records (`load_data`)
+        exp = exp.delay_input(cfg.data.input_delay)
+    return model, cfg, exp, unit
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..estimators.metrics import score_simulation
     from .checkpoint import read_checkpoint
+    from .evaluation import evaluate_model
     from .outcome import parameter_lines, parameter_table
 
-    model, cfg, exp = _load_for_eval(args.checkpoint, args.data)
-    score = score_simulation(
-        model, exp, method=cfg.simulation.method, substeps=cfg.simulation.substeps
-    )
+    model, cfg, exp, unit = _load_for_eval(args)
+    # Scored as the run scored its validation records (the same engine and solver), so a run's
+    # own validation record gives the FIT in its metrics.json.
+    (score,) = evaluate_model(model, [exp], cfg).values()
     state = read_checkpoint(args.checkpoint).get("estimator", {}).get("state", {})
     out = {
         "data": args.data,
         "samples": exp.n,
         **score.to_dict(),
+        "unit": {"q": unit, "qdot": f"{unit}/s"},  # of rms_q and rms_qdot (SI)
         # ± σ from the checkpoint's P_θθ (an EKF's kept pass); σ is null after output error
         "parameters": parameter_table(model, state.get("P_theta")),
     }
     if args.json:
         print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
     else:
-        print(f"{'metric':<12}{'q':>14}{'qdot':>14}")
-        print(f"{'FIT %':<12}{score.fit_q:>14.3f}{score.fit_qdot:>14.3f}")
-        print(f"{'RMS':<12}{score.rms_q:>14.6g}{score.rms_qdot:>14.6g}")
+        print(f"{'metric':<18}{'q':>14}{'qdot':>14}")
+        print(f"{'FIT %':<18}{score.fit_q:>14.3f}{score.fit_qdot:>14.3f}")
+        print(f"{f'RMS [{unit}, {unit}/s]':<18}{score.rms_q:>14.6g}{score.rms_qdot:>14.6g}")
         print()
         print("parameters (value ± σ):")
         print("\n".join(parameter_lines(out["parameters"], limit=len(out["parameters"]))))
@@ -152,11 +199,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
     out = pathlib.Path(args.out)
     _refuse_overwrite(out, [args.checkpoint, args.data], args.force)
-    model, cfg, exp = _load_for_eval(args.checkpoint, args.data)
+    model, cfg, exp, unit = _load_for_eval(args)
     x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
     with torch.no_grad():
         states = simulate(
-            model, exp.t, exp.u, x0, method=cfg.simulation.method, substeps=cfg.simulation.substeps
+            model,
+            exp.t,
+            exp.u,
+            x0,
+            method=cfg.simulation.method,
+            substeps=cfg.simulation.substeps,
+            # the engine the run scores with (`evaluate_model`): the compiled twin of odeint's rk4
+            engine="compiled" if cfg.estimator.compile else "odeint",
         )
     table = np.column_stack(
         [exp.t.numpy(), exp.u.numpy(), states[:, 0].numpy(), states[:, 1].numpy()]
@@ -165,7 +219,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     text = io.StringIO()
     np.savetxt(text, table, delimiter=",", header="t,u,q,qdot", comments="", fmt="%.17g")
     atomic_write_text(out, text.getvalue())
-    print(f"wrote {out} ({exp.n} samples)")
+    print(f"wrote {out} ({exp.n} samples; q in {unit}, qdot in {unit}/s)")
     return 0
 
 
@@ -280,12 +334,15 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "evaluate",
         help="open-loop simulation scores of a checkpoint on data",
-        description="Open-loop simulation scores (FIT, RMS) of a checkpoint on a data file.",
+        description="Open-loop simulation scores (FIT, RMS) of a checkpoint on a data file, "
+        "simulated as the run scored its validation records. RMS is in SI units: rad and rad/s "
+        "(rotary), m and m/s (linear), after data.position_unit's conversion.",
     )
     p.add_argument("checkpoint")
     p.add_argument(
         "data", help="CSV/NPZ/MAT file (columns per the checkpoint's config) or rig:NAME"
     )
+    _add_record_options(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=_cmd_evaluate)
 
@@ -295,13 +352,39 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate",
         help="simulate a checkpoint on a data file's input",
-        description="Simulate a checkpoint open loop on a data file's input; writes CSV t,u,q,qdot.",
+        description="Simulate a checkpoint open loop on a data file's input; writes CSV "
+        "t,u,q,qdot with t in s, u as in the file, q and qdot in SI units (rad, rad/s or m, "
+        "m/s).",
     )
     p.add_argument("checkpoint")
-    p.add_argument("data")
-    p.add_argument("--out", required=True, help="output CSV (columns t,u,q,qdot)")
+    p.add_argument(
+        "data", help="CSV/NPZ/MAT file (columns per the checkpoint's config) or rig:NAME"
+    )
+    _add_record_options(p)
+    p.add_argument(
+        "--out", required=True, help="output CSV (columns t,u,q,qdot; q in rad or m, SI)"
+    )
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=_cmd_simulate)
+
+
+def _add_record_options(p: argparse.ArgumentParser) -> None:
+    """``--column`` and ``--position-unit``, which ``evaluate`` and ``simulate`` share."""
+    p.add_argument(
+        "--column",
+        action="append",
+        metavar="OURS=NAME",
+        help="read our column t, u, q or qdot from the file's column NAME (repeatable); replaces "
+        "the checkpoint's data.columns for this file",
+    )
+    p.add_argument(
+        "--position-unit",
+        # torchfric.app.schema.POSITION_UNITS (a test keeps them equal): importing it here would
+        # import torch for every --help
+        choices=("rad", "deg", "m", "mm"),
+        default=None,
+        help="unit of q in this file (default: the checkpoint's data.position_unit)",
+    )
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:

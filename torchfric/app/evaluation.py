@@ -94,7 +94,7 @@ def result_warnings(
         )
     out += _bound_warnings(cfg, final, inertia)
     out += _uninformed(cfg, final, covariance, start)
-    for group in ("validation", "test"):
+    for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
             fit = m.get("fit_q")
             if fit is None or not fit == fit or fit < 0.0:
@@ -115,11 +115,12 @@ def result_warnings(
         and metrics.get("passes", 0) >= cfg.estimator.passes
     ):
         change = metrics.get("last_change")
+        score = "validation FIT" if metrics.get("validation") else "innovation likelihood"
         moving = f"θ still changing by {change:.2g} a pass, " if change is not None else ""
         out.append(
             f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with "
             f"{moving}above estimator.tolerance = {cfg.estimator.tolerance:g}: raise "
-            "estimator.passes if the validation FIT was still rising at the last pass "
+            f"estimator.passes if the {score} was still rising at the last pass "
             "(report.html, TensorBoard); otherwise the kept pass stands"
         )
     return out

@@ -185,7 +185,7 @@ _STOPPED = {
     "(the filter is at its best fit of the data; a smaller estimator.p0_theta or q_theta "
     "steadies it)",
     "budget": "NOT converged: after all {total} {units} θ still changed by {change} a pass "
-    "(estimator.tolerance {tolerance}); the kept pass is the one that validated best",
+    "(estimator.tolerance {tolerance}); the kept pass is the one that {kept_by}",
     "budget_oe": "NOT converged: the validation score was still improving at the last of the "
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
     "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
@@ -240,6 +240,7 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
                 best=best,
                 change=_g(metrics.get("last_change")),
                 tolerance=_g(metrics.get("tolerance")),
+                kept_by="validated best" if metrics.get("validation") else "fit the data best",
             )  # fmt: skip
         )
     table = metrics["parameters"]
@@ -248,11 +249,14 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     else:
         lines.append("parameters (no σ: output error keeps no parameter covariance):")
     lines += parameter_lines(table)
-    for group in ("validation", "test"):
+    for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
             lines.append(f"{group} FIT ({name}): q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
     if not metrics.get("validation"):
-        lines.append("validation: none (add held-out records as data.validation)")
+        lines.append(
+            "validation: none (the identification FIT above flatters the model; add held-out "
+            "records as data.validation)"
+        )
     for w in metrics.get("warnings", []):
         lines.append(f"warning: {w}")
     width = max(len(k) for k in files)

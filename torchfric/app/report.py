@@ -147,7 +147,7 @@ def _parameters(metrics: Mapping[str, Any]) -> str:
 
 def _fits(metrics: Mapping[str, Any]) -> str:
     rows = []
-    for group in ("validation", "test"):
+    for group in ("validation", "test", "identification"):
         for name, m in (metrics.get(group) or {}).items():
             rows.append(
                 f"<tr><td>{group}</td><td>{_e(name)}</td>"
@@ -169,6 +169,11 @@ def _fits(metrics: Mapping[str, Any]) -> str:
         '<p class="note">FIT = 100 (1 − ‖y − ŷ‖ / ‖y − mean(y)‖) of the open-loop simulation '
         "from the record's first state; 100 % is a perfect match.</p>"
     )
+    if not metrics.get("validation"):
+        note += (
+            '<p class="bad">No validation data: the identification records\' own FIT is shown, '
+            "and it flatters the model. Add held-out records as data.validation.</p>"
+        )
     return f"<table>{head}{''.join(rows)}</table>{note}"
 
 

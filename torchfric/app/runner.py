@@ -454,8 +454,8 @@ class _Run:
         seconds: float,
         scores: dict[str, SimulationScore],
     ) -> dict[str, Any]:
-        """`metrics.json`: the result, its scores on validation (`scores`) and test data, and
-        warnings."""
+        """`metrics.json`: the result, its scores on validation (`scores`) and test data (and on
+        the identification data when nothing is held out), and warnings."""
         cfg = self.cfg
         metrics: dict[str, Any] = {
             "name": cfg.name,
@@ -467,15 +467,12 @@ class _Run:
             "initial_inertia": self.initial_inertia,
             "parameters": parameter_table(final, self.covariance),
             "dt": self.train[0].dt,
-            "validation": {},
-            "test": {},
         }
-        for group, by_name in (
-            ("validation", scores),
-            ("test", evaluate_model(final, self.test, cfg)),
-        ):
-            for name, score in by_name.items():
-                metrics[group][name] = score.to_dict()
+        groups = {"validation": scores, "test": evaluate_model(final, self.test, cfg)}
+        if not self.val:  # nothing held out: the identification records are scored at least
+            groups["identification"] = evaluate_model(final, self.train, cfg)
+        for group, by_name in groups.items():
+            metrics[group] = {name: score.to_dict() for name, score in by_name.items()}
         metrics["warnings"] = self.warnings + result_warnings(
             cfg, final, metrics, self.init_kind, covariance=self.covariance, start=self.model
         )
