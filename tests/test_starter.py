@@ -267,8 +267,17 @@ def test_units_and_slow_sampling_are_checked(user, record, capsys) -> None:  # t
     _csv(user / "deg.csv", deg)
     assert main(["init", "deg.csv", "--c-m", "16"]) == 0
     out = capsys.readouterr().out
-    assert 'If q is in degrees set data.position_unit = "deg"' in out
+    assert (  # the terminal names the line to change, and the line to write instead
+        'if q is in degrees, change the line position_unit = "rad" under [data] in deg.toml to '
+        'position_unit = "deg"' in out
+    )
+    text = (user / "deg.toml").read_text()
+    comment = re.search(r"((?:^#.*\n)+)position_unit = ", text, re.M)[1]  # the lines above it
+    assert 'if q is in degrees, write position_unit = "deg" below' in comment.replace("\n# ", " ")
     assert Config.load(user / "deg.toml").data.position_unit == "rad"  # a note, not a change
+    assert main(["check", "deg.toml", "--set", 'data.position_unit="deg"']) == 0  # the fix works
+    inertia = float(re.search(r"inertia (\S+),", capsys.readouterr().out)[1])
+    assert inertia == pytest.approx(M, rel=0.02)
     _csv(user / "rad.csv", record)
     assert main(["init", "rad.csv", "--c-m", "16"]) == 0
     assert "note" not in capsys.readouterr().out  # 8.7 rad/s at most: nothing to say
@@ -318,3 +327,93 @@ def test_a_config_that_fails_its_check_is_not_written_nor_its_split_files(user, 
     before = _files(user)
     _fails(capsys, ["init", "still.csv", "--c-m", "1", "--split", "0.5"], "never move")
     assert _files(user) == before
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "when", "term"),
+    [
+        ("offset", 0.0, "try it when the simulation drifts one way", "offset"),
+        ("gravity", 0.1, "g_c·sin q of an unbalanced rotating arm", "gravity"),
+        ("asymmetric", 0.0, "viscous slope b + a forwards and b − a backwards", "asymmetric viscous"),
+    ],
+)  # fmt: skip
+def test_white_box_terms_are_offered_commented_out_and_each_works(  # type: ignore[no-untyped-def]
+    user, record, capsys, key, value, when, term
+) -> None:
+    _csv(user / "rec.csv", record)
+    assert main(["init", "rec.csv", "--c-m", "16"]) == 0
+    capsys.readouterr()
+    text = (user / "rec.toml").read_text()
+    model = text.split("\n[model]\n")[1].split("\n[estimator]\n")[0]
+    line = f"# {key} = {value}"
+    assert model.count(f"\n{line}\n") == 1  # off, in [model]
+    above = re.search(rf"((?:^# .*\n)+){re.escape(line)}$", model, re.M)[1]
+    assert when in above.replace("\n# ", " ")
+    assert getattr(Config.load(user / "rec.toml").model, key) is None  # off as written
+    (user / "on.toml").write_text(text.replace(f"\n{line}\n", f"\n{key} = {value}\n"))
+    assert getattr(Config.load(user / "on.toml").model, key) == value
+    assert main(["check", "on.toml"]) == 0  # the model builds and the pre-fit runs with it
+    out = capsys.readouterr().out
+    assert f"9 parameters, c_m 16 (known, fixed); terms: {term}" in out
+
+
+@pytest.mark.parametrize(
+    ("n", "dt", "header", "noise", "why"),
+    [
+        (2000, 1e-3, ("t", "u", "q"), True, "a step of 0.5 s or more"),  # 1 kHz in ms: 1.0
+        (5000, 1e-4, ("t", "u", "q", "qdot"), True, "the measured qdot is"),  # 10 kHz: 0.1
+        (5000, 1e-4, ("t", "u", "q"), False, "q moves as if sampled much faster"),
+    ],
+)
+def test_time_in_milliseconds_is_refused_not_filtered_around(  # type: ignore[no-untyped-def]
+    user, capsys, n, dt, header, noise, why
+) -> None:
+    rec = _simulate(n, dt)
+    if not noise:  # the simulation's noise taken out: q smooth on the scale of a sample
+        rec["q"] -= np.random.default_rng(0).normal(0.0, 1e-4, n)
+    _csv(user / "rec.csv", {**rec, "t": rec["t"] * 1000.0}, header)
+    _write(user / "bare.csv", list(header[1:]), [rec[k] for k in header[1:]])  # no t
+    before = _files(user)
+    step = f"{dt * 1000:g} s ({1 / (dt * 1000):g} Hz)"
+    _fails(capsys, ["init", "rec.csv", "--c-m", "16"],
+           f"the time column 't' steps by {step}, which looks like milliseconds (", why,
+           "convert the column to seconds (t/1000)")  # fmt: skip
+    _fails(capsys, ["init", "bare.csv", "--c-m", "16", "--time-step", f"{dt * 1000:g}"],
+           f"--time-step {dt * 1000:g}: a sample time of {step} looks like milliseconds",
+           "e.g. --time-step 0.001 for 1 ms samples")  # fmt: skip
+    assert _files(user) == before  # nothing written
+    assert main(["init", "bare.csv", "--c-m", "16", "--time-step", f"{dt:g}"]) == 0  # in s: fine
+
+
+def test_slow_but_plausible_sampling_keeps_a_lowered_cutoff(user, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "disc.csv", _simulate(1000, 0.025))  # 40 Hz, as the unbalanced disc
+    assert main(["init", "disc.csv", "--c-m", "16"]) == 0
+    assert "warning" not in capsys.readouterr().out  # the data check finds nothing either
+    assert Config.load(user / "disc.toml").data.velocity_cutoff_hz == 8.0  # 0.4 × 20 Hz
+
+
+@pytest.mark.parametrize(
+    ("data", "siblings", "validation", "test"),
+    [
+        ("run1_train", ["run1_test", "run2_test"], ["run1_test"], []),
+        ("train", ["test"], ["test"], []),
+        ("Training-Data", ["Testing-Data"], ["Testing-Data"], []),
+        ("rec", ["rec_test", "rec_val"], ["rec_val"], ["rec_test"]),
+        ("step_test", ["step_test_val"], ["step_test_val"], []),  # "test" in the data's name
+    ],
+)
+def test_a_test_record_beside_the_data_pairs_too(  # type: ignore[no-untyped-def]
+    user, record, capsys, data, siblings, validation, test
+) -> None:
+    other = _simulate(1500, 1e-3)
+    _csv(user / f"{data}.csv", record)
+    for name in siblings:
+        _csv(user / f"{name}.csv", other)
+    assert main(["init", f"{data}.csv", "--c-m", "16"]) == 0
+    out = capsys.readouterr().out
+    assert f"validation  {', '.join(f'{v}.csv' for v in validation)}" in out
+    assert ("test        " in out) == bool(test)
+    cfg = Config.load(user / f"{data}.toml")
+    assert cfg.data.validation == tuple(str(user / f"{v}.csv") for v in validation)
+    assert cfg.data.test == tuple(str(user / f"{v}.csv") for v in test)
+    assert main(["check", f"{data}.toml"]) == 0

@@ -7,8 +7,6 @@ User errors (bad config, data, checkpoints, a diverging filter) print one line
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import io
 import json
 import os
 import pathlib
@@ -21,9 +19,10 @@ from typing import Any
 # Nothing here imports torch at module level: `--help`, `--version` and argument errors answer
 # without it (a third of a second instead of two); each command imports what it needs.
 from ..errors import RunInterrupted, TorchfricError
-from ..files import atomic_write_text, json_safe
+from ..files import json_safe
 from ..version import __version__
 from .api import progress_printer, torch_settings
+from .use import cmd_evaluate, cmd_export, cmd_simulate
 
 __all__ = ["main"]
 
@@ -89,160 +88,6 @@ def print_result(result: Any, *, as_json: bool = False, copied: str | None = Non
         print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
         return
     print("\n".join(summary_lines(m, files)))
-
-
-def _refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> None:
-    """An output path never names an input; an existing file is replaced only with --force."""
-    target = out.resolve()
-    for p in inputs:
-        if not p.startswith("rig:") and pathlib.Path(p).resolve() == target:
-            raise TorchfricError(f"--out {out} is an input of this command; give another file name")
-    if out.is_dir():
-        raise TorchfricError(f"--out {out} is a directory; give a file name")
-    if out.exists() and not force:
-        raise TorchfricError(f"--out {out} exists; give a new file name, or --force to replace it")
-
-
-def _load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    """(model, config, experiment, unit) for ``evaluate`` and ``simulate``: the record
-    ``args.data`` read as the run read its records — the checkpoint's data config with
-    ``--column`` and ``--position-unit`` in place of its columns and unit, the input delay
-    applied — and the SI unit of its q. The training's sample range does not apply. A warning
-    on stderr when the model's axis (linear or rotary) is not the record's."""
-    import re
-
-    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
-    from .config import RIG_PREFIX
-    from .figures import si_unit
-    from .loading import load_record
-    from .starter import parse_columns
-
-    columns = parse_columns(args.column) if args.column else None
-    rig = args.data.startswith(RIG_PREFIX)
-    if rig and (columns is not None or args.position_unit):
-        flag = "--column" if columns is not None else "--position-unit"
-        raise TorchfricError(
-            f"{flag} is for a data file; {args.data} is the built-in rig's record (q in rad), "
-            f"read as it is: leave {flag} out"
-        )
-    model = load_checkpoint(args.checkpoint)
-    cfg = checkpoint_config(read_checkpoint(args.checkpoint))
-    trained_in = cfg.data.position_unit
-    data = dataclasses.replace(
-        cfg.data,
-        start=0,
-        stop=None,
-        columns=cfg.data.columns if columns is None else columns,
-        position_unit=args.position_unit or trained_in,
-    )
-    cfg = dataclasses.replace(cfg, data=data)
-    unit = si_unit("rad" if rig else data.position_unit)
-    if unit != si_unit(trained_in):
-        axis = {"m": "a linear axis", "rad": "a rotary axis"}
-        read = "the rig's arm" if rig else f"--position-unit {data.position_unit}"
-        sys.stderr.write(
-            f"warning: the model was identified on {axis[si_unit(trained_in)]} (data.position_unit"
-            f" = {trained_in!r}, q in {si_unit(trained_in)}) but {args.data} is {axis[unit]} "
-            f"({read}, q in {unit}); the scores compare unlike quantities\n"
-        )
-    try:
-        exp, _ = load_record(cfg, args.data)
-    except TorchfricError as err:
-        if "data.columns" not in str(err):
-            raise
-        found = re.search(r"\(for (\w+)\)|no (qdot) column", str(err))
-        role = next((g for g in found.groups() if g), "q") if found else "q"
-        raise TorchfricError(
-            f"{err}; here: --column {role}=NAME (repeatable; it replaces the checkpoint's "
-            "data.columns, so map every column the file names differently)"
-        ) from None
-    if cfg.data.input_delay:  # as the run scored its records (`load_data`)
-        exp = exp.delay_input(cfg.data.input_delay)
-    return model, cfg, exp, unit
-
-
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .checkpoint import read_checkpoint
-    from .evaluation import evaluate_model
-    from .outcome import parameter_lines, parameter_table
-
-    model, cfg, exp, unit = _load_for_eval(args)
-    # Scored as the run scored its validation records (the same engine and solver), so a run's
-    # own validation record gives the FIT in its metrics.json.
-    (score,) = evaluate_model(model, [exp], cfg).values()
-    state = read_checkpoint(args.checkpoint).get("estimator", {}).get("state", {})
-    out = {
-        "data": args.data,
-        "samples": exp.n,
-        **score.to_dict(),
-        "unit": {"q": unit, "qdot": f"{unit}/s"},  # of rms_q and rms_qdot (SI)
-        # ± σ from the checkpoint's P_θθ (an EKF's kept pass); σ is null after output error
-        "parameters": parameter_table(model, state.get("P_theta")),
-    }
-    if args.json:
-        print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
-    else:
-        print(f"{'metric':<18}{'q':>14}{'qdot':>14}")
-        print(f"{'FIT %':<18}{score.fit_q:>14.3f}{score.fit_qdot:>14.3f}")
-        print(f"{f'RMS [{unit}, {unit}/s]':<18}{score.rms_q:>14.6g}{score.rms_qdot:>14.6g}")
-        print()
-        print("parameters (value ± σ):")
-        print("\n".join(parameter_lines(out["parameters"], limit=len(out["parameters"]))))
-    return 0
-
-
-def _cmd_simulate(args: argparse.Namespace) -> int:
-    import numpy as np
-    import torch
-
-    from ..models.simulate import simulate
-
-    out = pathlib.Path(args.out)
-    _refuse_overwrite(out, [args.checkpoint, args.data], args.force)
-    model, cfg, exp, unit = _load_for_eval(args)
-    x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
-    with torch.no_grad():
-        states = simulate(
-            model,
-            exp.t,
-            exp.u,
-            x0,
-            method=cfg.simulation.method,
-            substeps=cfg.simulation.substeps,
-            # the engine the run scores with (`evaluate_model`): the compiled twin of odeint's rk4
-            engine="compiled" if cfg.estimator.compile else "odeint",
-        )
-    table = np.column_stack(
-        [exp.t.numpy(), exp.u.numpy(), states[:, 0].numpy(), states[:, 1].numpy()]
-    )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    text = io.StringIO()
-    np.savetxt(text, table, delimiter=",", header="t,u,q,qdot", comments="", fmt="%.17g")
-    atomic_write_text(out, text.getvalue())
-    print(f"wrote {out} ({exp.n} samples; q in {unit}, qdot in {unit}/s)")
-    return 0
-
-
-def _cmd_export(args: argparse.Namespace) -> int:
-    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
-    from .export import export_model, save_exported
-
-    _refuse_overwrite(pathlib.Path(args.out), [args.checkpoint], args.force)
-    model = load_checkpoint(args.checkpoint)
-    raw = read_checkpoint(args.checkpoint)
-    dt = args.dt
-    if dt is None:
-        dt = float(raw.get("metrics", {}).get("dt", 1e-3))
-    cfg = checkpoint_config(raw)
-    module = export_model(
-        model, dt=dt, substeps=cfg.simulation.substeps, method=cfg.simulation.method
-    )
-    save_exported(module, args.out)
-    print(
-        f"wrote {args.out}: torch.jit.load(path).simulate(t, u, x0) -> (q, qdot) at any sample "
-        "time; .friction(v), .field(x, u)"
-    )
-    return 0
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
@@ -344,7 +189,7 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     )
     _add_record_options(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.set_defaults(func=_cmd_evaluate)
+    p.set_defaults(func=cmd_evaluate)
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
@@ -365,7 +210,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
         "--out", required=True, help="output CSV (columns t,u,q,qdot; q in rad or m, SI)"
     )
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.set_defaults(func=_cmd_simulate)
+    p.set_defaults(func=cmd_simulate)
 
 
 def _add_record_options(p: argparse.ArgumentParser) -> None:
@@ -403,7 +248,7 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         help="nominal sample time stored with the module (metadata: it simulates at the sample time of the t it is given; default: the training data's)",
     )
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.set_defaults(func=_cmd_export)
+    p.set_defaults(func=cmd_export)
 
 
 def _add_generate(sub: argparse._SubParsersAction) -> None:

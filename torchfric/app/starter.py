@@ -1,22 +1,33 @@
 """``torchfric init DATA --c-m VALUE``: a commented starter config for a user's data file.
 
 `write_starter` reads the file with the project's readers (`read_columns`, `load_experiment`:
-every check a run makes on a record) and writes a config only once it has passed `check_run`.
+every check a run makes on a record; which columns are ours and the units: `torchfric.app.columns`)
+and writes a config only once it has passed `check_run`.
 
 - Columns: ours (t, u, q, qdot) by name or a common alternative (`ALIASES`), without case and
   without a unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name
   wins. Two candidates, or none for t, u or q, stop with the header and the line to write.
-- Sample time: the t column's (uniform to the loader's 1e-3), or ``--time-step``. A rate too
-  slow for the 200 Hz velocity filter gets ``velocity_cutoff_hz`` = 0.4 × Nyquist.
+- Sample time: the t column's (uniform to the loader's 1e-3), or ``--time-step``. One that
+  looks like milliseconds is refused, not worked around: a step of `MS_STEP` (0.5 s, 2 Hz) or
+  more always (1 kHz in ms steps by 1.0; no servo record is sampled at 2 Hz), a step of 0.05 s
+  or more when the data check (`torchfric.data.data_warnings`, as ``check`` runs it with the
+  default 200 Hz filter) finds q or qdot moving as if sampled much faster. Any other rate too
+  slow for the 200 Hz velocity filter (100 Hz, the 40 Hz disc) gets ``velocity_cutoff_hz`` =
+  0.4 × Nyquist.
 - Units of q: a unit in the column's name sets ``position_unit``; without one q is taken as
   rad (or m), with a note when whole numbers only (encoder counts) or a speed above
-  `FAST_SPEED` units/s (about 1000 rpm in rad) suggest otherwise.
+  `FAST_SPEED` units/s (about 1000 rpm in rad) suggest otherwise; for the speed, the comment
+  beside ``position_unit`` says the line to write for degrees. The unit is never changed.
+- Model: the white-box terms (``offset``, ``gravity``, ``asymmetric``) are written commented
+  out, each with when to turn it on.
 - Validation: ``data.start``/``stop`` apply to every file, so one file cannot be split by
   sample ranges. ``--split F`` (only when asked) writes its first fraction F and the rest as two
-  new CSV files beside the config; otherwise a record beside the data named as its validation
-  record (``run1_train`` ↔ ``run1_val``, ``identification`` ↔ ``validation``) with the same
-  columns and sample time is proposed, or a comment says how to add one. Nothing is replaced:
-  not the data, not a split file; the config only with ``--force``.
+  new CSV files beside the config; otherwise a record beside the data named as its held-out
+  record (``run1_train`` ↔ ``run1_val`` or ``run1_test``, ``identification`` ↔ ``validation``,
+  ``train`` ↔ ``test``) with the same columns and sample time is proposed as validation, or a
+  comment says how to add one; with both a validation- and a test-named record, the test one
+  goes to ``data.test``. Nothing is replaced: not the data, not a split file; the config only
+  with ``--force``.
 """
 
 from __future__ import annotations
@@ -30,135 +41,30 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..data import DEFAULT_CUTOFF_HZ, Experiment, load_experiment
+from ..data import Experiment, load_experiment
 from ..data.readers import read_columns, save_csv
-from ..errors import TorchfricError, shorten
+from ..errors import TorchfricError
 from ..files import atomic_write_text
 from ..models.friction import FRICTIONS
 from ..version import __version__
 from .check import check_run
-from .config import COLUMN_NAMES, MAX_NAME, POSITION_UNITS, Config, EstimatorConfig, ModelConfig
+from .columns import (
+    map_columns,
+    parse_columns,
+    position_unit_guess,
+    refuse_milliseconds,
+    refuse_time_unit,
+    slow_cutoff,
+)
+from .config import MAX_NAME, POSITION_UNITS, Config, EstimatorConfig, ModelConfig
 from .toml_io import toml_value
 
-__all__ = ["ALIASES", "FAST_SPEED", "write_starter"]
+__all__ = ["write_starter"]
 
-ALIASES: dict[str, tuple[str, ...]] = {
-    "t": ("t", "time", "times", "timestamp", "sec", "secs", "seconds"),
-    "u": ("u", "input", "current", "i", "iq", "cmd", "command", "control", "torque", "tau",
-          "force", "voltage", "volt", "pwm"),
-    "q": ("q", "pos", "position", "theta", "th", "angle", "phi", "qm", "x", "encoder", "enc"),
-    "qdot": ("qdot", "q_dot", "qd", "dq", "dqdt", "velocity", "vel", "speed", "omega",
-             "thetadot", "theta_dot", "dtheta", "xdot", "x_dot"),
-}  # fmt: skip
-"""Names (lower case, unit removed) recognised for each of our columns; our own name first."""
-FAST_SPEED = 100.0
-"""A q that moves faster than this (99th percentile of |Δq|/dt, units/s) gets a unit note."""
-_MEANING = {"t": "time in s", "u": "input", "q": "position", "qdot": "velocity"}
-_UNITS = {"deg": "deg", "degree": "deg", "degrees": "deg", "°": "deg", "rad": "rad",
-          "radian": "rad", "radians": "rad", "m": "m", "meter": "m", "metre": "m",
-          "meters": "m", "metres": "m", "mm": "mm", "counts": "counts", "count": "counts",
-          "cnt": "counts", "cnts": "counts", "inc": "counts", "ticks": "counts",
-          "s": "s", "sec": "s", "ms": "ms", "us": "us", "µs": "us"}  # fmt: skip
-_UNIT_IN_BRACKETS = re.compile(r"\s*[\[(]([^\])]*)[\])]\s*$")
 _TRAIN_WORDS = {"train", "training", "identification", "ident", "id", "idf", "estimation", "fit"}
 _VALID_WORDS = {"val", "valid", "validation", "validate"}
+_TEST_WORDS = {"test", "testing"}
 _MIN_PART = 100  # samples in each part of a --split
-
-
-# ------------------------------------------------------------------------------------ columns
-def _parse_name(name: str) -> tuple[str, str | None]:
-    """(base name, unit) of a column name: ``"Time [s]"`` → ("time", "s"), ``"pos_deg"`` →
-    ("pos", "deg"); the unit is None when the name gives none."""
-    s, unit = name.strip().lower(), None
-    m = _UNIT_IN_BRACKETS.search(s)
-    if m:
-        s, unit = s[: m.start()], _UNITS.get(m.group(1).strip())
-    s = re.sub(r"[\s.\-]+", "_", s).strip("_")
-    base, sep, tail = s.rpartition("_")
-    if unit is None and sep and base and tail in _UNITS:
-        s, unit = base, _UNITS[tail]
-    return s, unit
-
-
-def _map_columns(
-    table: Mapping[str, np.ndarray], given: Mapping[str, str], path: pathlib.Path, timed: bool
-) -> dict[str, str]:
-    """Our names → the file's, from `given` (``--column``) and the names in `table`.
-
-    `timed`: the sample time comes from ``--time-step``, so no t column is needed."""
-    for role, name in given.items():
-        if role not in COLUMN_NAMES:
-            raise TorchfricError(
-                f"--column {role}={name}: {role!r} is not one of our columns; use "
-                f"{', '.join(COLUMN_NAMES)}, e.g. --column q=encoder"
-            )
-    names = [k for k, v in table.items() if np.ndim(v) == 1 or 1 in np.shape(v)]
-    header = ", ".join(table) or "nothing"
-    mapping, unknown = dict(given), {}
-    for role in COLUMN_NAMES:
-        if role in mapping or (role == "t" and timed):
-            continue
-        free = [n for n in names if n not in mapping.values()]
-        own = [n for n in free if _parse_name(n)[0] == role]
-        found = own or [n for n in free if _parse_name(n)[0] in ALIASES[role]]
-        if len(found) == 1:
-            mapping[role] = found[0]
-        elif role != "qdot":  # qdot is optional (the velocity is rebuilt from q)
-            unknown[role] = f"{' and '.join(found)} all look like it" if found else "none does"
-    if unknown:
-        which = "; ".join(f"{r} ({_MEANING[r]}): {why}" for r, why in unknown.items())
-        fix = " ".join(f"--column {r}=NAME" for r in unknown)
-        if unknown.get("t") == "none does":
-            fix += " (or --time-step SECONDS for a file without a time column)"
-        line = {k: mapping.get(k, "NAME") for k in COLUMN_NAMES if k in mapping or k in unknown}
-        raise TorchfricError(
-            f"{path}: cannot tell which column is {which}; the header is: {shorten(header)}; "
-            f"rerun with {fix}, which writes under [data]: columns = {toml_value(line)}"
-        )
-    return mapping
-
-
-# ------------------------------------------------------------------------------------ checks
-def _time_unit(mapping: Mapping[str, str], path: pathlib.Path) -> None:
-    name = mapping.get("t")
-    unit = _parse_name(name)[1] if name else None
-    if unit in ("ms", "us"):
-        raise TorchfricError(
-            f"{path}: the time column {name!r} is in {unit}; torchfric reads t in seconds: "
-            "convert it (t/1000 for ms), or leave it out and give --time-step SECONDS"
-        )
-
-
-def _position_unit(name: str, q: np.ndarray, dt: float) -> tuple[str, str, list[str]]:
-    """(data.position_unit, the reason for the config's comment, notes to show the user)."""
-    unit = _parse_name(name)[1]
-    if unit in POSITION_UNITS:
-        return unit, f'from the column name "{name}"', []
-    speed = float(np.quantile(np.abs(np.diff(q)), 0.99)) / dt
-    if unit == "counts" or (np.all(q == np.round(q)) and np.unique(q).size >= 20):
-        why = f'the name "{name}" says counts' if unit == "counts" else "q holds whole numbers only"
-        note = (
-            f"{why} ({q.min():.0f} … {q.max():.0f}): encoder counts? torchfric has no unit for "
-            "counts; convert q to rad (× 2π / counts per turn) or to m before training, or "
-            "every parameter comes out per count"
-        )
-    elif speed > FAST_SPEED:
-        note = (
-            f"q moves at up to {speed:.4g} units/s: {speed * 30 / math.pi:,.0f} rpm if it is in "
-            f'rad. If q is in degrees set data.position_unit = "deg" ({speed * math.pi / 180:.3g} '
-            'rad/s), in millimetres "mm"'
-        )
-    else:
-        return "rad", "nothing says otherwise; for a linear axis in m, the same numbers", []
-    return "rad", "taken as rad, but see the note at the top", [note]
-
-
-def _cutoff(dt: float) -> float | None:
-    """A velocity cut-off when the default one is above 0.4 × Nyquist, else None."""
-    nyquist = 0.5 / dt
-    if DEFAULT_CUTOFF_HZ["highpass"] <= 0.4 * nyquist:
-        return None
-    return float(f"{0.4 * nyquist:.3g}")
 
 
 # ------------------------------------------------------------------------------------ validation
@@ -166,27 +72,37 @@ def _words(stem: str) -> list[str]:
     return [w for w in re.split(r"[^a-z0-9]+", stem.lower()) if w]
 
 
-def _paired(data: pathlib.Path, other: pathlib.Path) -> bool | None:
-    """True: `other` is named as `data`'s validation record; False: named as a validation
-    record of something else; None: not named as a validation record."""
+def _held_out(data: pathlib.Path, other: pathlib.Path) -> tuple[str, bool] | None:
+    """("validation" or "test", whether it pairs with `data`) when `other` is named as a
+    held-out record (a validation word wins over a test word), else None. It pairs when the
+    two names agree once the role words are dropped: ``run1_train`` ↔ ``run1_val`` and
+    ``run1_test``, ``train`` ↔ ``test``."""
     words = _words(other.stem)
-    if not any(w in _VALID_WORDS for w in words):
+    role = (
+        "validation"
+        if any(w in _VALID_WORDS for w in words)
+        else "test"
+        if any(w in _TEST_WORDS for w in words)
+        else None
+    )
+    if role is None:
         return None
-    rest = [w for w in words if w not in _VALID_WORDS]
-    return rest == [w for w in _words(data.stem) if w not in _TRAIN_WORDS]
+    roles = _TRAIN_WORDS | _VALID_WORDS | _TEST_WORDS
+    rest = [w for w in words if w not in roles]
+    return role, rest == [w for w in _words(data.stem) if w not in roles]
 
 
 def _siblings(
     data: pathlib.Path, mapping: Mapping[str, str], time_step: float | None, dt: float
-) -> tuple[list[pathlib.Path], list[pathlib.Path]]:
-    """(paired, other) validation-named records beside `data` that read with its columns and
-    sample time (`_paired`)."""
-    paired: list[pathlib.Path] = []
-    other: list[pathlib.Path] = []
+) -> tuple[list[pathlib.Path], list[pathlib.Path], list[pathlib.Path]]:
+    """(validation, test, other): the held-out-named records beside `data` that read with its
+    columns and sample time (`_held_out`); the first two pair with `data`, the last do not.
+    Test-named ones are the validation when no validation-named one pairs."""
+    found: dict[tuple[str, bool], list[pathlib.Path]] = {}
     for p in sorted(data.parent.iterdir()):
         if p == data or p.suffix.lower() != data.suffix.lower() or not p.is_file():
             continue
-        kind = _paired(data, p)
+        kind = _held_out(data, p)
         if kind is None:
             continue
         try:
@@ -194,8 +110,10 @@ def _siblings(
         except TorchfricError:
             continue
         if abs(exp.dt - dt) <= 1e-3 * dt:
-            (paired if kind else other).append(p)
-    return paired, other
+            found.setdefault(kind, []).append(p)
+    val, test = found.get(("validation", True), []), found.get(("test", True), [])
+    other = sorted(found.get(("validation", False), []) + found.get(("test", False), []))
+    return (val, test, other) if val else (test, [], other)
 
 
 def _split(
@@ -222,11 +140,15 @@ def _split(
 
 
 # ------------------------------------------------------------------------------------ the text
+def _comment(*comment: str) -> list[str]:
+    """`comment` wrapped as ``#`` lines."""
+    text = " ".join(c for c in comment if c)
+    return textwrap.wrap(text, 96, initial_indent="# ", subsequent_indent="# ") if text else []
+
+
 def _block(key: str, value: object, *comment: str, active: bool = True) -> list[str]:
     """`comment` wrapped as ``#`` lines, then ``key = value`` (commented out unless `active`)."""
-    text = " ".join(c for c in comment if c)
-    lines = textwrap.wrap(text, 96, initial_indent="# ", subsequent_indent="# ") if text else []
-    return [*lines, ("" if active else "# ") + f"{key} = {toml_value(value)}"]
+    return [*_comment(*comment), ("" if active else "# ") + f"{key} = {toml_value(value)}"]
 
 
 def _rel(path: pathlib.Path, folder: pathlib.Path) -> str:
@@ -251,6 +173,7 @@ class _Plan:
         self.notes: list[str] = []
         self.train: list[pathlib.Path] = [data]
         self.validation: list[pathlib.Path] = []
+        self.test: list[pathlib.Path] = []
         self.others: list[pathlib.Path] = []
         self.splits: dict[pathlib.Path, Experiment] = {}
         self.split = ""
@@ -266,16 +189,23 @@ class _Plan:
             "validation", others or ["second.csv"], _HELP["validation"], none, active=False
         )
 
+    def _test(self) -> list[str]:
+        if not self.test:
+            return []
+        test = [_rel(p, self.folder) for p in self.test]
+        return _block("test", test, _HELP["test"], _FOUND)
+
     def _data(self) -> list[str]:
         units = ", ".join(f'"{u}"' for u in POSITION_UNITS)
         lines = ["[data]", *_block("train", [_rel(p, self.folder) for p in self.train],
-                                   self.split, _HELP["train"]), *self._validation()]  # fmt: skip
+                                   self.split, _HELP["train"]), *self._validation(),
+                 *self._test()]  # fmt: skip
         if self.mapping:
             lines += _block("columns", self.mapping, _HELP["columns"])
         if self.time_step is not None:
             lines += _block("time_step", self.time_step, "Sample time [s]: the file has no t.")
         unit = f"Unit of q in the file: {units} (q becomes rad or m); {self.unit_why}."
-        lines += _block("position_unit", self.unit, unit)
+        lines += _block("position_unit", self.unit, unit, self.unit_hint)
         lines += _block("velocity", "highpass", _HELP["velocity"])
         why = f"The velocity filter's cut-off [Hz], below Nyquist ({0.5 / self.exp.dt:g} Hz)."
         if self.cutoff is not None:
@@ -304,15 +234,31 @@ class _Plan:
         ]
         for key in ("friction", "size", "c_m", "init", "inertia", "viscous"):
             head += _block(key, getattr(model, key), _HELP.get(key, ""))
+        head += _comment(_TERMS_HELP)
+        for key, example, why in _TERMS:
+            head += _block(key, example, why, active=False)
         head += ["", "[estimator]"]
         for key in ("method", "passes", "tolerance", "ensemble"):
             head += _block(key, getattr(est, key), _HELP.get(key, ""))
         return "\n".join(head) + "\n"
 
 
+_TERMS_HELP = (
+    "White-box terms, each off until you remove the # before its line; the number is the "
+    'initial guess (init = "prefit" fits it from the data).'
+)
+_TERMS = (
+    ("offset", 0.0, "A constant force or torque (gravity on a tilted linear axis, a "
+     "cable, an amplifier offset); try it when the simulation drifts one way (EMPS needs it)."),
+    ("gravity", 0.1, "g_c·sin q of an unbalanced rotating arm (g_c = m·g·l > 0, q in "
+     "rad or deg, 0 hanging straight down); for an arm that swings back when let go."),
+    ("asymmetric", 0.0, "a·|q̇|, viscous slope b + a forwards and b − a backwards; "
+     "try it when the machine runs faster one way than the other under the same input."),
+)  # fmt: skip
+"""[model] keys written commented out: (key, example value, when to turn it on)."""
 _FOUND = (
-    "Found beside the data file, named as its validation record, with the same columns and "
-    "sample time: remove the line if it is not a record of this machine."
+    "Found beside the data file, named as its held-out record (validation or test), with the "
+    "same columns and sample time: remove the line if it is not a record of this machine."
 )
 _NONE = (
     "None yet: a run is then scored on its own identification data, which says little about the "
@@ -323,6 +269,7 @@ _NONE = (
 _HELP = {
     "train": "Identification records (paths relative to this file); every pass uses all of them.",
     "validation": "Held-out records: open-loop FIT after every pass, which picks the pass kept.",
+    "test": "Held-out records scored once, at the end; they pick nothing.",
     "columns": "Our name = the file's: t time [s], u input, q position, qdot velocity (optional).",
     "velocity": 'q̇ for the estimator: "highpass" (the paper\'s causal differentiator), '
     '"zero_phase" (off-line) or "measured" (the file\'s qdot column).',
@@ -389,22 +336,26 @@ def _out_path(data: pathlib.Path, out: str | os.PathLike[str] | None, force: boo
 def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> None:
     """Columns, the record, its sample time and the unit of q into `plan`."""
     data = plan.data
-    plan.mapping = _map_columns(read_columns(data), columns, data, time_step is not None)
+    plan.mapping = map_columns(read_columns(data), columns, data, time_step is not None)
     plan.read_as = dict(plan.mapping)
-    _time_unit(plan.mapping, data)
+    refuse_time_unit(plan.mapping, data)
     plan.time_step = time_step if "t" not in plan.mapping else None
     plan.exp = exp = load_experiment(data, columns=plan.mapping, time_step=time_step)
+    refuse_milliseconds(exp, plan.mapping.get("t"), data)
     steps = np.diff(exp.t.numpy())
     plan.jitter = float(np.max(np.abs(steps - np.median(steps))) / np.median(steps))
-    plan.unit, plan.unit_why, notes = _position_unit(plan.mapping["q"], exp.q.numpy(), exp.dt)
+    plan.unit, plan.unit_why, plan.unit_hint, notes = position_unit_guess(
+        plan.mapping["q"], exp.q.numpy(), exp.dt, plan.out.name
+    )
     plan.notes += notes
-    plan.cutoff = _cutoff(exp.dt)
+    plan.cutoff = slow_cutoff(exp.dt)
 
 
 def _propose_validation(plan: _Plan, split: float | str | None) -> None:
     if split is None:
-        paired, plan.others = _siblings(plan.data, plan.mapping, plan.time_step, plan.exp.dt)
-        plan.validation = paired
+        plan.validation, plan.test, plan.others = _siblings(
+            plan.data, plan.mapping, plan.time_step, plan.exp.dt
+        )
         return
     try:
         fraction = float(split)
@@ -472,13 +423,9 @@ def write_starter(
     path = pathlib.Path(data).absolute()
     if not path.is_file():
         raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")
-    if not isinstance(columns, Mapping):
-        bad = [s for s in columns if "=" not in s]
-        if bad:
-            raise TorchfricError(f"--column {bad[0]}: expected OURS=NAME, e.g. --column q=pos")
-        columns = dict(s.split("=", 1) for s in columns)
+    mapping = parse_columns(columns)
     plan = _Plan(path, _out_path(path, out, force), c)
-    _read(plan, {k.strip(): v.strip() for k, v in columns.items()}, time_step)
+    _read(plan, mapping, time_step)
     _propose_validation(plan, split)
     found = _write(plan, force)
     exp = plan.exp
@@ -492,6 +439,8 @@ def write_starter(
         lines.append("validation  " + ", ".join(p.name for p in plan.validation))
     else:
         lines.append("validation  none (see the comment in the config, or use --split 0.7)")
+    if plan.test:
+        lines.append("test        " + ", ".join(p.name for p in plan.test))
     lines += [f"note        {n}" for n in plan.notes]
     lines += [f"warning     {w}" for w in found]
     lines += [f"wrote       {p}" for p in (*plan.splits, plan.out)]
