@@ -11,14 +11,12 @@ engine with `torchfric.models.simulate.register_engine` (`torchfric.accel` impor
 
 from __future__ import annotations
 
-import json
-
 import torch
 from torch import Tensor
 
 from ..models.arm import ArmModel
 from ..models.simulate import odeint_engine, register_engine, rk4_step
-from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, structure_key
+from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, step_key, structure_key
 
 __all__ = ["rk4_chunk", "compiled_engine"]
 
@@ -46,7 +44,7 @@ def rk4_chunk(model: ArmModel, direction: str = "forward"):  # type: ignore[no-u
         # Generated C first (`torchfric.accel.native`; a batch of B runs is B copies of the
         # step in one function), the Inductor scan where that cannot serve a shape.
         chunk = make_chunk(one, options=chunk_options(fused_matmul), native=True,
-                           key=json.dumps(["rk4 step", direction, key[0]]))  # fmt: skip
+                           key=step_key("rk4 step", direction, key[0]))  # fmt: skip
         _RK4_CHUNKS[key] = (model, chunk)
     return _RK4_CHUNKS[key][1]
 

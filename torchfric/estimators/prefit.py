@@ -20,7 +20,6 @@ low-passed signals are decimated to 4 samples per cut-off period.
 from __future__ import annotations
 
 import copy
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -301,7 +300,7 @@ def _native_rows(
     to the `vmap` forms to rounding. Each uses its given `vmap` form instead, from then on, if
     the translation fails or there is no C compiler. The generated code is kept per model
     structure, so later pre-fits of the same structure do not trace again."""
-    from ..accel import structure_key
+    from ..accel import step_key, structure_key
     from ..accel.native import NativeUnavailable, make_native_chunk
 
     key = structure_key(model)
@@ -315,7 +314,7 @@ def _native_rows(
 
         _ROW_CHUNKS[key] = (model, *(
             make_native_chunk(f, members=True, member_consts=(True,),
-                              key=json.dumps([f"prefit {f.__name__}", key]))
+                              key=step_key(f"prefit {f.__name__}", key))
             for f in (grad_row, value_row)))  # fmt: skip
     _, grad_chunk, value_chunk = _ROW_CHUNKS[key]
     valid = torch.ones(x.shape[0], dtype=torch.bool)

@@ -7,7 +7,7 @@ has the covariance
 
     Cov[F(v)] ≈ J P_θθ Jᵀ,          J = ∂F(v; θ)/∂θ  `(N, k)`, taken with respect to θ *as stored*
 
-(`torch.func.jacrev` of `ArmModel.friction_torque(v, θ)`), so the Jacobian carries the chain rule
+(`friction_jacobian`, by autograd of `ArmModel.friction_torque(v, θ)`), so the Jacobian carries the chain rule
 through the exponentials of the log-stored entries. The band is exact when F is affine in θ (e.g.
 only the output weights W2 of the tanh network uncertain) and an approximation otherwise.
 
@@ -150,6 +150,6 @@ def parameter_std(
     """
     th = _check(model, P_theta, theta)
     P = torch.as_tensor(P_theta, dtype=torch.float64)
-    scale = torch.where(model.log_mask(), th.exp(), torch.ones_like(th))
+    scale = torch.where(model.log_mask(), model.to_physical(th), torch.ones_like(th))
     std = scale * torch.diagonal(P).clamp_min(0.0).sqrt()
     return dict(zip(model.theta_names, std.tolist(), strict=True))

@@ -203,12 +203,15 @@ def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) ->
     is too short to gain from threads (`_SPLIT_SECONDS`, timed on this library's first call,
     unless ``$TORCHFRIC_NATIVE_THREADS`` sets the count)."""
     blocks = -(-K // lanes)  # groups of `lanes` members, split evenly across threads
-    threads = _threads(blocks)
-    unit = _UNIT_SECONDS.get(lib)
-    if threads > 1 and not os.environ.get("TORCHFRIC_NATIVE_THREADS"):
+    # one group (the single filter, a small ensemble) never splits: no thread count to look up
+    # and no timing on this, the hottest call
+    threads = 1 if blocks == 1 else _threads(blocks)
+    adaptive = threads > 1 and not os.environ.get("TORCHFRIC_NATIVE_THREADS")
+    if adaptive:
+        unit = _UNIT_SECONDS.get(lib)
         if unit is None or unit * blocks * C < _SPLIT_SECONDS:
             threads = 1
-    t0 = time.perf_counter()
+        t0 = time.perf_counter()
     if threads == 1:
         lib.torchfric_chunk(0, K, K, C, ptrs)
     else:
@@ -219,8 +222,8 @@ def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) ->
             w.start()
         for w in workers:
             w.join()
-    # the one-thread cost (split: at most threads × the time), so that the choice follows it
-    _UNIT_SECONDS[lib] = (time.perf_counter() - t0) * threads / max(blocks * C, 1)
+    if adaptive:  # the one-thread cost (split: at most threads × the time), for the next choice
+        _UNIT_SECONDS[lib] = (time.perf_counter() - t0) * threads / max(blocks * C, 1)
 
 
 def _run(
