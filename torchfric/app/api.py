@@ -23,8 +23,6 @@ if TYPE_CHECKING:
 
 __all__ = ["fit", "override_strings", "progress_printer", "torch_settings"]
 
-_SECTIONS = ("data", "model", "estimator", "simulation", "log")
-
 
 @contextlib.contextmanager
 def torch_settings() -> Iterator[None]:
@@ -49,6 +47,7 @@ def torch_settings() -> Iterator[None]:
 def override_strings(overrides: Mapping[str, Any]) -> list[str]:
     """Keyword overrides as ``--set`` strings: ``estimator={"passes": 3}`` (a section as a
     dict), ``**{"estimator.passes": 3}`` (dotted keys) and top-level keys (``name="x"``)."""
+    from .config import _SECTIONS
     from .toml_io import toml_value
 
     out: list[str] = []

@@ -10,7 +10,6 @@ pre-fit's compiled code may be added to the compiled-code cache, ``TORCHFRIC_CAC
 
 from __future__ import annotations
 
-import math
 import os
 import pathlib
 
@@ -19,7 +18,9 @@ import torch
 from ..data import DEFAULT_CUTOFF_HZ, Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
+from .columns import rpm
 from .config import Config
+from .figures import si_unit
 from .loading import check_resources, config_model, initial_model, load_data
 from .rundir import next_run_dir
 
@@ -193,13 +194,13 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
 def _units(unit: str, train: list[Experiment]) -> str:
     """The units the data are read in, with the identification data's top speed in them: the
     number that shows a position in degrees (or mm) read as rad (or m) at a glance."""
-    si = "m" if unit in ("m", "mm") else "rad"
+    si = si_unit(unit)
     speeds = [float(e.qdot.abs().max()) for e in train if e.qdot is not None and e.n]
     if not speeds:
         return f"t in s, q in {unit} (read as {si})"
     v = max(speeds)
-    rpm = f" = {v * 60 / (2 * math.pi):,.0f} rpm" if si == "rad" else ""
+    turns = f" = {rpm(v):,.0f} rpm" if si == "rad" else ""
     return (
-        f"t in s, q in {unit}: |q̇| reaches {v:.3g} {si}/s{rpm} in the identification data; "
+        f"t in s, q in {unit}: |q̇| reaches {v:.3g} {si}/s{turns} in the identification data; "
         "if your machine never moves that fast, set data.position_unit"
     )

@@ -53,6 +53,7 @@ __all__ = [
     "save_checkpoint",
     "read_checkpoint",
     "load_checkpoint",
+    "checkpoint_model",
     "checkpoint_config",
     "sha256_file",
 ]
@@ -253,7 +254,12 @@ def read_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def load_checkpoint(path: str | os.PathLike[str]) -> ArmModel:
     """The `ArmModel` stored in a checkpoint, θ set exactly (physical values as identified)."""
-    ckpt = read_checkpoint(path)
+    return checkpoint_model(read_checkpoint(path), path)
+
+
+def checkpoint_model(ckpt: Mapping[str, Any], path: str | os.PathLike[str]) -> ArmModel:
+    """The `ArmModel` of a checkpoint already read (`read_checkpoint`); `path` names it in
+    messages."""
     try:
         model = ArmModel.from_spec(ckpt["model"])
     except TorchfricError:

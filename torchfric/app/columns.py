@@ -36,6 +36,7 @@ __all__ = [
     "position_unit_guess",
     "refuse_milliseconds",
     "refuse_time_unit",
+    "rpm",
     "slow_cutoff",
 ]
 
@@ -188,14 +189,14 @@ def position_unit_guess(
             "every parameter comes out per count"
         )
     elif speed > FAST_SPEED:
-        fast = f"q moves at up to {speed:.4g} units/s, {speed * 30 / math.pi:,.0f} rpm if in rad"
-        deg = f"{speed * math.pi / 180:.3g} rad/s"
+        fast = f"q moves at up to {speed:.4g} units/s, {rpm(speed):,.0f} rpm if in rad"
+        deg = f"{speed * POSITION_UNITS['deg']:.3g} rad/s"
         note = (
             f'{fast}: if q is in degrees, change the line position_unit = "rad" under [data] '
             f'in {config} to position_unit = "deg" ({deg}); in millimetres, to "mm"'
         )
         hint = (
-            f"Up to {speed:.4g} units/s is {speed * 30 / math.pi:,.0f} rpm in rad: if q is in "
+            f"Up to {speed:.4g} units/s is {rpm(speed):,.0f} rpm in rad: if q is in "
             f'degrees, write position_unit = "deg" below ({deg}); in millimetres, "mm".'
         )
         return "rad", "taken as rad, but q moves fast for rad", hint, [note]
@@ -210,3 +211,8 @@ def slow_cutoff(dt: float) -> float | None:
     if DEFAULT_CUTOFF_HZ["highpass"] <= 0.4 * nyquist:
         return None
     return float(f"{0.4 * nyquist:.3g}")
+
+
+def rpm(speed: float) -> float:
+    """A speed in rad/s as revolutions per minute (the number that shows degrees read as rad)."""
+    return speed * 30.0 / math.pi

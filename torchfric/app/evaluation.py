@@ -12,7 +12,13 @@ from ..models.arm import ArmModel
 from .checkpoint import read_checkpoint
 from .config import Config
 
-__all__ = ["evaluate_model", "result_warnings", "provenance"]
+__all__ = ["evaluate_model", "result_warnings", "provenance", "scoring_engine"]
+
+
+def scoring_engine(cfg: Config) -> str:
+    """The engine a run scores open-loop simulations with: the compiled twin of odeint's rk4
+    (the same steps) when the compiled paths are on (`estimator.compile`), else odeint."""
+    return "compiled" if cfg.estimator.compile else "odeint"
 
 
 def evaluate_model(
@@ -26,8 +32,7 @@ def evaluate_model(
             e,
             method=cfg.simulation.method,
             substeps=cfg.simulation.substeps,
-            # The fast path scores through the compiled twin of odeint's rk4 (same steps).
-            engine="compiled" if cfg.estimator.compile else "odeint",
+            engine=scoring_engine(cfg),
         )
     return out
 
@@ -62,11 +67,11 @@ def _uninformed(cfg: Config, final: ArmModel, covariance: Any, start: ArmModel |
     ]
     if not names:
         return []
-    which = f"{names[0]}'s σ is" if len(names) == 1 else f"the σ of {', '.join(names)} are"
+    which = "its σ is" if len(names) == 1 else "their σ are"
     return [
         f"the data hardly informed {', '.join(names)}: {which} still at least 90 % of the "
         "prior's (estimator.p0_theta), so the ± shows the prior, not what the data say; a "
-        "smaller model (model.size) or richer excitation would pin it down"
+        "smaller model (model.size) or richer excitation would pin them down"
     ]
 
 

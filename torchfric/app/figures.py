@@ -50,7 +50,7 @@ def si_unit(unit: str) -> str:
 
 
 def _force(unit: str) -> str:
-    return "N" if unit in ("m", "mm") else "N m"
+    return "N" if si_unit(unit) == "m" else "N m"
 
 
 def _subplots(*args: Any, **kwargs: Any) -> tuple[Any, Any]:

@@ -91,6 +91,9 @@ class ValidationScores(Callback):
     def __init__(self, cfg: Config, validation: list[Experiment]) -> None:
         self.cfg, self.validation = cfg, validation
         self.latest: dict[str, SimulationScore] = {}
+        # (pass, score, scores) of the best-scored pass so far, ties to the later (as
+        # `keep_best` chooses): the run's final scores when it keeps that pass
+        self.best: tuple[int, float, dict[str, SimulationScore]] | None = None
 
     def update(self, model: ArmModel) -> dict[str, SimulationScore]:
         """Score `model`, keep the scores as `latest` and return them."""
@@ -107,8 +110,15 @@ class ValidationScores(Callback):
         # the pass's score goes into its record (and so into the snapshots): the run keeps the
         # pass that validates best (`torchfric.app.outcome.keep_best`)
         if not record.rolled_back:
-            record.val_score = mean_fit(self.fits)
+            record.val_score = score = mean_fit(self.fits)
+            if score is not None and (self.best is None or score >= self.best[1]):
+                self.best = (record.index, score, self.latest)
         return None
+
+    def scores_at(self, index: int | None) -> dict[str, SimulationScore] | None:
+        """The validation scores of pass `index` when it is the best-scored pass (the one a
+        run keeps), else None."""
+        return self.best[2] if self.best is not None and self.best[0] == index else None
 
 
 class TensorBoardLog(Callback):

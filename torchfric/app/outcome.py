@@ -22,9 +22,9 @@ import torch
 from torch import Tensor
 
 from ..data import Experiment
-from ..estimators.metrics import fit_percent_batch, mean_fit
+from ..estimators.metrics import mean_fit
 from ..estimators.passes import EKFResult, PassRecord
-from ..estimators.selection import simulate_members
+from ..estimators.selection import select_by_fit
 from ..estimators.uncertainty import parameter_std
 from ..models.arm import ArmModel
 from .snapshots import ekf_payload
@@ -56,13 +56,13 @@ def score_passes(
     if not todo or not validation:
         return
     thetas = torch.tensor([r.theta for r in todo], dtype=torch.float64)
-    fits: list[dict[str, dict[str, float]]] = [{} for _ in todo]
-    for v in validation:
-        sim = simulate_members(model, thetas, v, max_substeps=max_substeps, engine=engine)
-        fq = fit_percent_batch(v.q.to(torch.float64), sim[..., 0])
-        fv = fit_percent_batch(v.qdot.to(torch.float64), sim[..., 1])
-        for j in range(len(todo)):
-            fits[j][v.name] = {"fit_q": float(fq[j]), "fit_qdot": float(fv[j])}
+    alive = list(range(len(todo)))
+    # the ensemble's own scorer, on the validation records alone; its fits, not its scores (it
+    # falls back to the likelihood when nothing simulates, and a failed pass scores −inf here)
+    _, fits, _ = select_by_fit(
+        model, thetas, alive, (), validation, torch.zeros(len(todo)),
+        max_substeps=max_substeps, engine=engine,
+    )  # fmt: skip
     for record, fit in zip(todo, fits, strict=True):
         score = mean_fit(fit)
         record.val_score = score if score is not None and math.isfinite(score) else -math.inf
@@ -140,10 +140,10 @@ def kept_pass(
     }
 
 
-def kept_payload(kept: EKFResult, result: EKFResult, extra: dict[str, Any]) -> dict[str, Any]:
+def kept_payload(kept: EKFResult, extra: dict[str, Any]) -> dict[str, Any]:
     """The final checkpoint's estimator state: the kept pass's θ and ``P_θθ``, the run's
-    history, and which pass was kept."""
-    payload = ekf_payload(kept, result.passes)
+    history (`kept` carries it whole), and which pass was kept."""
+    payload = ekf_payload(kept, kept.passes)
     payload["best_pass"] = extra["best_pass"]
     return payload
 
@@ -190,7 +190,6 @@ _STOPPED = {
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
     "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
     "ran out, and none validated better than epoch {best}; the result is that epoch's",
-    "": "",
 }
 
 

@@ -28,7 +28,7 @@ from ..files import atomic_write_text, json_safe, write_json
 from ..models.arm import ArmModel
 from .checkpoint import build_checkpoint, read_checkpoint, save_checkpoint
 from .config import Config
-from .evaluation import evaluate_model, provenance, result_warnings
+from .evaluation import evaluate_model, provenance, result_warnings, scoring_engine
 from .figures import png_from_pixels
 from .loading import check_resources, config_model, initial_model, load_data
 from .observers import Printer, ProgressLines, TensorBoardLog, ValidationScores, fit_text
@@ -120,16 +120,13 @@ def _run_ekf(
                 f"{err} (last good pass saved to {run / 'last_good.pt'})", last_good=last
             ) from None
         raise
-    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg), cfg.estimator.tolerance)
+    kept, extra = kept_pass(
+        result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
+    )
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(
         sum(r.seconds for r in result.history), 1e-9
     )
-    return kept.model, kept_payload(kept, result, extra), extra
-
-
-def _engine(cfg: Config) -> str:
-    """The engine that scores the passes' θ on the validation records (as the ensemble's)."""
-    return "compiled" if cfg.estimator.ekf_tuning().compile else "odeint"
+    return kept.model, kept_payload(kept, extra), extra
 
 
 def _scales(scales: tuple[float, ...]) -> str:
@@ -177,10 +174,12 @@ def _run_ensemble(
     )
     result = ens.result
     obs.tensorboard.log_ensemble_result(result)
-    kept, extra = kept_pass(result, obs.scores.validation, _engine(cfg), cfg.estimator.tolerance)
+    kept, extra = kept_pass(
+        result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
+    )
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(ens.seconds, 1e-9)
     extra["ensemble"] = summary
-    return kept.model, kept_payload(kept, result, extra), extra
+    return kept.model, kept_payload(kept, extra), extra
 
 
 def _run_output_error(
@@ -353,7 +352,9 @@ class _Run:
                 raise
             seconds = time.perf_counter() - self.t_start
             self.covariance = state.get("P_theta")  # the kept pass's (None after output error)
-            scores = evaluate_model(final, self.val, self.cfg)
+            # the kept pass's scores, when the filter's own pass loop already made them
+            scores = obs.scores.scores_at(extra.get("best_pass"))
+            scores = scores if scores is not None else evaluate_model(final, self.val, self.cfg)
             metrics = self._metrics(final, extra, seconds, scores)
             self._write_result(run, final, state, metrics)
             self._write_views(run, obs, final, state, metrics, scores)

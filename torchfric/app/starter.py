@@ -41,7 +41,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..data import Experiment, load_experiment
+from ..data import DEFAULT_CUTOFF_HZ, Experiment, load_experiment
 from ..data.readers import read_columns, save_csv
 from ..errors import TorchfricError
 from ..files import atomic_write_text
@@ -210,7 +210,12 @@ class _Plan:
         why = f"The velocity filter's cut-off [Hz], below Nyquist ({0.5 / self.exp.dt:g} Hz)."
         if self.cutoff is not None:
             why += " Set to 0.4 × Nyquist: the default 200 Hz is too fast for this sampling."
-        lines += _block("velocity_cutoff_hz", self.cutoff or 200.0, why, active=bool(self.cutoff))
+        lines += _block(
+            "velocity_cutoff_hz",
+            self.cutoff or DEFAULT_CUTOFF_HZ["highpass"],
+            why,
+            active=bool(self.cutoff),
+        )
         return lines + _block("stop", self.exp.n, _HELP["stop"], active=False)
 
     def text(self) -> str:

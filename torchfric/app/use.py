@@ -36,14 +36,14 @@ def refuse_overwrite(out: pathlib.Path, inputs: Sequence[str], force: bool) -> N
 
 
 def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    """(model, config, experiment, unit) for ``evaluate`` and ``simulate``: the record
+    """(model, config, experiment, unit, the checkpoint as read) for ``evaluate`` and ``simulate``: the record
     ``args.data`` read as the run read its records — the checkpoint's data config with
     ``--column`` and ``--position-unit`` in place of its columns and unit, the input delay
     applied — and the SI unit of its q. The training's sample range does not apply. A warning
     on stderr when the model's axis (linear or rotary) is not the record's."""
     import re
 
-    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
+    from .checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
     from .columns import parse_columns
     from .config import RIG_PREFIX
     from .figures import si_unit
@@ -57,8 +57,8 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             f"{flag} is for a data file; {args.data} is the built-in rig's record (q in rad), "
             f"read as it is: leave {flag} out"
         )
-    model = load_checkpoint(args.checkpoint)
-    cfg = checkpoint_config(read_checkpoint(args.checkpoint))
+    raw = read_checkpoint(args.checkpoint)
+    model, cfg = checkpoint_model(raw, args.checkpoint), checkpoint_config(raw)
     trained_in = cfg.data.position_unit
     data = dataclasses.replace(
         cfg.data,
@@ -92,19 +92,18 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         ) from None
     if cfg.data.input_delay:  # as the run scored its records (`load_data`)
         exp = exp.delay_input(cfg.data.input_delay)
-    return model, cfg, exp, unit
+    return model, cfg, exp, unit, raw
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .checkpoint import read_checkpoint
     from .evaluation import evaluate_model
     from .outcome import parameter_lines, parameter_table
 
-    model, cfg, exp, unit = load_for_eval(args)
+    model, cfg, exp, unit, raw = load_for_eval(args)
     # Scored as the run scored its validation records (the same engine and solver), so a run's
     # own validation record gives the FIT in its metrics.json.
     (score,) = evaluate_model(model, [exp], cfg).values()
-    state = read_checkpoint(args.checkpoint).get("estimator", {}).get("state", {})
+    state = raw.get("estimator", {}).get("state", {})
     out = {
         "data": args.data,
         "samples": exp.n,
@@ -130,10 +129,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     import torch
 
     from ..models.simulate import simulate
+    from .evaluation import scoring_engine
 
     out = pathlib.Path(args.out)
     refuse_overwrite(out, [args.checkpoint, args.data], args.force)
-    model, cfg, exp, unit = load_for_eval(args)
+    model, cfg, exp, unit, _ = load_for_eval(args)
     x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
     with torch.no_grad():
         states = simulate(
@@ -143,8 +143,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             x0,
             method=cfg.simulation.method,
             substeps=cfg.simulation.substeps,
-            # the engine the run scores with (`evaluate_model`): the compiled twin of odeint's rk4
-            engine="compiled" if cfg.estimator.compile else "odeint",
+            engine=scoring_engine(cfg),  # the engine the run scores with
         )
     table = np.column_stack(
         [exp.t.numpy(), exp.u.numpy(), states[:, 0].numpy(), states[:, 1].numpy()]
@@ -158,12 +157,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from .checkpoint import checkpoint_config, load_checkpoint, read_checkpoint
+    from .checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
     from .export import export_model, save_exported
 
     refuse_overwrite(pathlib.Path(args.out), [args.checkpoint], args.force)
-    model = load_checkpoint(args.checkpoint)
     raw = read_checkpoint(args.checkpoint)
+    model = checkpoint_model(raw, args.checkpoint)
     dt = args.dt
     if dt is None:
         dt = float(raw.get("metrics", {}).get("dt", 1e-3))
