@@ -5,6 +5,7 @@ from __future__ import annotations
 __all__ = [
     "SHOW_LIMIT",
     "DivergenceError",
+    "MissingColumn",
     "RunInterrupted",
     "TorchfricError",
     "shorten",
@@ -38,6 +39,16 @@ class DivergenceError(TorchfricError):
     def __init__(self, message: str, *, last_good: object = None) -> None:
         super().__init__(message)
         self.last_good = last_good
+
+
+class MissingColumn(TorchfricError):
+    """A record lacks one of our columns (t, u, q, qdot): `role` names which, so that a caller
+    can say how its own user maps it (``data.columns`` in a config, ``--column`` on the command
+    line)."""
+
+    def __init__(self, message: str, *, role: str) -> None:
+        super().__init__(message)
+        self.role = role
 
 
 class RunInterrupted(TorchfricError):

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 
 from ..data import Experiment, data_warnings, load_experiment, make_experiment
-from ..errors import TorchfricError
+from ..errors import MissingColumn, TorchfricError
 from ..estimators.prefit import prefit
 from ..models.arm import ArmModel
 from ..models.friction import make_friction
@@ -58,7 +58,8 @@ def _read_record(cfg: Config, path: str) -> tuple[Experiment, str]:
 def load_record(
     cfg: Config, path: str, warnings: list[str] | None = None
 ) -> tuple[Experiment, str]:
-    """One experiment with velocity per `data.velocity`, and its fingerprint.
+    """One experiment with velocity per `data.velocity` and input per `data.input_delay`, and
+    its fingerprint.
 
     `torchfric.data.data_warnings` about the record (on the file's own columns, before the
     velocity is rebuilt) are appended to `warnings`; when the velocity cannot be rebuilt they
@@ -71,9 +72,10 @@ def load_record(
         warnings.extend(found)
     if d.velocity == "measured":
         if exp.qdot is None:
-            raise TorchfricError(
+            raise MissingColumn(
                 f"data.velocity = 'measured' but {path} has no qdot column; map one in data.columns "
-                "or set data.velocity = 'highpass'"
+                "or set data.velocity = 'highpass'",
+                role="qdot",
             )
     else:
         try:
@@ -84,6 +86,8 @@ def load_record(
             raise TorchfricError(
                 f"{'; '.join(found)} (the velocity reconstruction: {err})"
             ) from None
+    if d.input_delay:
+        exp = exp.delay_input(d.input_delay)
     return exp, digest
 
 
@@ -100,8 +104,6 @@ def load_data(
         exps = []
         for p in paths:
             exp, digest = load_record(cfg, p, warnings if group < 2 else None)
-            if cfg.data.input_delay:
-                exp = exp.delay_input(cfg.data.input_delay)
             prints[p] = digest
             exps.append(exp)
         groups.append(exps)

@@ -17,7 +17,7 @@ import pathlib
 import sys
 from collections.abc import Sequence
 
-from ..errors import TorchfricError
+from ..errors import MissingColumn, TorchfricError
 from ..files import atomic_write_text, json_safe
 
 __all__ = ["cmd_evaluate", "cmd_export", "cmd_simulate", "load_for_eval", "refuse_overwrite"]
@@ -41,8 +41,6 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     ``--column`` and ``--position-unit`` in place of its columns and unit, the input delay
     applied — and the SI unit of its q. The training's sample range does not apply. A warning
     on stderr when the model's axis (linear or rotary) is not the record's."""
-    import re
-
     from .checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
     from .columns import parse_columns
     from .config import RIG_PREFIX
@@ -79,19 +77,11 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         )
     try:
         exp, _ = load_record(cfg, args.data)
-    except TorchfricError as err:
-        # The reader's "no column 'x' (for u)", "no time column" and load_record's "no qdot
-        # column" speak of data.columns: here the fix is --column.
-        found = re.search(r"no column '.*?' \(for (\w+)\)|no (time|qdot) column", str(err))
-        if found is None:
-            raise
-        role = {"time": "t"}.get(found[2], found[1] or found[2])
+    except MissingColumn as err:  # it speaks of data.columns: here the fix is --column
         raise TorchfricError(
-            f"{err}; here: --column {role}=NAME (repeatable; it replaces the checkpoint's "
+            f"{err}; here: --column {err.role}=NAME (repeatable; it replaces the checkpoint's "
             "data.columns, so map every column the file names differently)"
         ) from None
-    if cfg.data.input_delay:  # as the run scored its records (`load_data`)
-        exp = exp.delay_input(cfg.data.input_delay)
     return model, cfg, exp, unit, raw
 
 

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 
 import numpy as np
 
-from ..errors import TorchfricError, shorten
+from ..errors import MissingColumn, TorchfricError, shorten
 from .convert import _check_step, _one_line
 from .experiment import _COLUMNS, Experiment, _check_shapes, _validate
 from .guards import _MEMORY_FIX, _check_memory, _check_regular_file
@@ -202,10 +202,11 @@ def _select(
     else:
         base, sep, idx = spec.rpartition(":")
         if not (sep and base in table and idx.strip().isascii() and idx.strip().isdigit()):
-            raise TorchfricError(
+            raise MissingColumn(
                 f"{path}: no column {spec!r} (for {ours}); the file has: {_available(table)}; "
                 f'map it in data.columns, e.g. data.columns.{ours} = "<name>" '
-                f"(columns={{{ours!r}: '<name>'}} in Python)"
+                f"(columns={{{ours!r}: '<name>'}} in Python)",
+                role=ours,
             )
         arr, index = table[base], int(idx)
     arr = np.asarray(arr)
@@ -340,10 +341,11 @@ def load_experiment(
     t_in_file = "t" in cols
     if not t_in_file:
         if time_step is None:
-            raise TorchfricError(
+            raise MissingColumn(
                 f"{p}: no time column {mapping['t']!r} (the file has: {_available(table)}); "
                 "add a t column or give time_step, the sample period in s "
-                "(data.time_step in a run config)"
+                "(data.time_step in a run config)",
+                role="t",
             )
         cols = {"t": np.arange(cols["q"].shape[0]) * time_step} | cols
         labels["t"] = f"t = arange(N)*{time_step:g}"
