@@ -13,7 +13,6 @@ They run in that order, so each pass's scores are there before they are logged, 
 
 from __future__ import annotations
 
-import copy
 import time
 from collections.abc import Callable
 from typing import Any, TextIO
@@ -133,7 +132,7 @@ class TensorBoardLog(Callback):
     the filter, so they are drawn when they are looked at (`torchfric.app.sections.LogConfig`): for the starting model (step 0) and the
     final one when the run ends (`finish`), and in between every ``log.figure_every`` passes
     or epochs ("auto": at most once a minute). A figure not drawn at its pass keeps that
-    pass's model (a copy) and scores, so the end figures are those of their own steps."""
+    pass's model and scores, so the end figures are those of their own steps."""
 
     AUTO_SECONDS = 60.0
 
@@ -213,11 +212,13 @@ class TensorBoardLog(Callback):
         for e, score in zip(self.scores.validation, self.scores.latest.values(), strict=True):
             self.writer.add_scalar(f"validation/{e.name}/fit_q", score.fit_q, step)
             self.writer.add_scalar(f"validation/{e.name}/fit_qdot", score.fit_qdot, step)
-        frozen, latest = copy.deepcopy(model), dict(self.scores.latest)
-        band = None if P_theta is None else P_theta.detach().clone()
+        # No copies for a figure owed until later: every caller hands over a model and a
+        # P_θθ of its own (`PassLedger.result` copies both each pass; the starting model is
+        # never changed by the estimator), and the scores are replaced, never changed.
+        latest = self.scores.latest
 
         def draw() -> None:
-            self.add_images(step, self.model_pixels(step, frozen, band, latest))
+            self.add_images(step, self.model_pixels(step, model, P_theta, latest))
 
         self.figures(step, draw)
         self.writer.flush()
@@ -308,13 +309,9 @@ class TensorBoardLog(Callback):
                 w.add_scalar(f"validation/{name}/fit_q", f["fit_q"], record.index)
                 w.add_scalar(f"validation/{name}/fit_qdot", f["fit_qdot"], record.index)
             title = f"epoch {record.index} (best {result.best_epoch})"
-            frozen, step, unit = (
-                copy.deepcopy(result.model),
-                record.index,
-                self.cfg.data.position_unit,
-            )
+            model, step, unit = result.model, record.index, self.cfg.data.position_unit
             self.figures(step, lambda: self.add_images(step, {
-                "friction_curve": pixels(friction_figure(frozen, self.v_max, title, unit))}))  # fmt: skip
+                "friction_curve": pixels(friction_figure(model, self.v_max, title, unit))}))  # fmt: skip
         w.flush()
         return None
 
