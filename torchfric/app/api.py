@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import pathlib
 import sys
 from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
@@ -21,7 +20,7 @@ if TYPE_CHECKING:
     from .config import Config
     from .runner import TrainResult
 
-__all__ = ["fit", "override_strings", "progress_printer", "torch_settings"]
+__all__ = ["fit", "override_strings", "progress_printer", "torch_settings", "train_on_stderr"]
 
 
 @contextlib.contextmanager
@@ -134,17 +133,31 @@ def fit(
             f"fit() takes a config file path or a torchfric.Config, got {type(config).__name__}"
         )
     with torch_settings():
-        from .runner import train
-
-        bars = not quiet and sys.stderr.isatty()
-        return train(
-            cfg,
-            run_dir=pathlib.Path(resume if resume is not None else out)
-            if (resume is not None or out is not None)
-            else None,
-            resume=resume is not None,
-            overwrite=overwrite,
-            checkpoint=checkpoint,
-            say=progress_printer(quiet, bars),
-            bars=sys.stderr if bars else None,
+        return train_on_stderr(
+            cfg, out=out, resume=resume, overwrite=overwrite, checkpoint=checkpoint, quiet=quiet
         )
+
+
+def train_on_stderr(
+    cfg: Config,
+    *,
+    out: str | os.PathLike[str] | None = None,
+    resume: str | os.PathLike[str] | None = None,
+    overwrite: bool = False,
+    checkpoint: str | os.PathLike[str] | None = None,
+    quiet: bool = False,
+) -> TrainResult:
+    """`torchfric.app.runner.train` with the CLI's progress on stderr (bars on a terminal,
+    lines elsewhere, nothing when `quiet`): what ``torchfric train`` and `fit` both run."""
+    from .runner import train
+
+    bars = not quiet and sys.stderr.isatty()
+    return train(
+        cfg,
+        run_dir=resume if resume is not None else out,
+        resume=resume is not None,
+        overwrite=overwrite,
+        checkpoint=checkpoint,
+        say=progress_printer(quiet, bars),
+        bars=sys.stderr if bars else None,
+    )

@@ -21,7 +21,7 @@ from typing import Any
 from ..errors import RunInterrupted, TorchfricError
 from ..files import json_safe
 from ..version import __version__
-from .api import progress_printer, torch_settings
+from .api import torch_settings, train_on_stderr
 from .use import cmd_evaluate, cmd_export, cmd_simulate
 
 __all__ = ["main"]
@@ -29,20 +29,13 @@ __all__ = ["main"]
 
 def _cmd_train(args: argparse.Namespace) -> int:
     from .config import Config
-    from .runner import train
 
     cfg = Config.load(args.config, list(args.set or []))
-    bars = not args.quiet and sys.stderr.isatty()
     try:
-        result = train(
-            cfg,
-            run_dir=args.resume if args.resume is not None else args.out,
-            resume=args.resume is not None,
-            overwrite=args.overwrite,
-            checkpoint=args.checkpoint,
-            say=progress_printer(args.quiet, bars),
-            bars=sys.stderr if bars else None,
-        )
+        result = train_on_stderr(
+            cfg, out=args.out, resume=args.resume, overwrite=args.overwrite,
+            checkpoint=args.checkpoint, quiet=args.quiet,
+        )  # fmt: skip
     except RunInterrupted as stop:
         if stop.run_dir is not None:
             sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
