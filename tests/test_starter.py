@@ -137,6 +137,11 @@ def test_config_in_another_folder_names_the_data_relative_to_itself(user, record
             "rad",
         ),
         (("t", "u", "q", "dq"), {"t": "t", "u": "u", "q": "q", "qdot": "dq"}, "rad"),
+        # an alternative as one word of the name (as engineers export them)
+        (("Time [s]", "motor_current", "angle_deg"),
+         {"t": "Time [s]", "u": "motor_current", "q": "angle_deg"}, "deg"),  # fmt: skip
+        (("time_s", "force_cmd_N", "pos_mm"),
+         {"t": "time_s", "u": "force_cmd_N", "q": "pos_mm"}, "mm"),  # fmt: skip
     ],
 )
 def test_alternative_column_names_map(user, record, capsys, header, columns, unit) -> None:  # type: ignore[no-untyped-def]

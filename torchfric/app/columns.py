@@ -4,7 +4,9 @@ qdot), and whether its time and position units are what they seem.
 - `parse_columns`: ``--column OURS=NAME`` flags (or a mapping) checked into a mapping; also used
   by ``evaluate`` and ``simulate``.
 - `map_columns`: ours by name or a common alternative (`ALIASES`), without case and without a
-  unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name wins. Two
+  unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name wins, and
+  for t, u and q a name with an alternative as one of its words (``motor_current``) comes
+  last. Two
   candidates, or none for t, u or q, stop with the header and the line to write.
 - `refuse_time_unit`, `refuse_milliseconds`: a time column in ms (by its name, or by a step of
   `MS_STEP` or more, or by the data check's evidence) is refused, not worked around.
@@ -117,6 +119,8 @@ def map_columns(
         free = [n for n in names if n not in mapping.values()]
         own = [n for n in free if _parse_name(n)[0] == role]
         found = own or [n for n in free if _parse_name(n)[0] in ALIASES[role]]
+        if not found and role != "qdot":  # a word of the name: "motor_current", "force_cmd_N"
+            found = [n for n in free if set(_parse_name(n)[0].split("_")) & set(ALIASES[role])]
         if len(found) == 1:
             mapping[role] = found[0]
         elif role != "qdot":  # qdot is optional (the velocity is rebuilt from q)
