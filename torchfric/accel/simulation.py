@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ..models.arm import ArmModel
-from ..models.simulate import odeint_engine, register_engine, rk4_step
+from ..models.simulate import odeint_engine, register_engine, solver_step
 from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, step_key, structure_key
 
 __all__ = ["rk4_chunk", "compiled_engine"]
@@ -53,7 +53,7 @@ def _forward_step(model: ArmModel):  # type: ignore[no-untyped-def]
     """One rk4 step as a chunk function: ``(x, u, h, θ) -> ((x',), (x',))``."""
 
     def one(x: Tensor, u: Tensor, h: Tensor, theta: Tensor):  # type: ignore[no-untyped-def]
-        x1 = rk4_step(model, x, u, h, *model.split(theta))
+        x1 = solver_step(model, x, u, h, *model.split(theta))
         return (x1,), (x1,)
 
     return one
@@ -66,7 +66,7 @@ def _adjoint_step(model: ArmModel):  # type: ignore[no-untyped-def]
     def one(lam: Tensor, g_theta: Tensor, x: Tensor, u: Tensor, h: Tensor, g: Tensor,
             theta: Tensor):  # type: ignore[no-untyped-def]  # fmt: skip
         def step(x_: Tensor, th: Tensor) -> Tensor:
-            return rk4_step(model, x_, u, h, *model.split(th))
+            return solver_step(model, x_, u, h, *model.split(th))
 
         _, pull = torch.func.vjp(step, x, theta)
         d_x, d_theta = pull(lam)
@@ -118,7 +118,7 @@ def compiled_engine(
     """The "compiled" engine (`torchfric.models.simulate.Engine`): rk4 on `grid` (`substeps`
     solver steps per sample) through `rk4_chunk`, differentiable in θ and x0 (`_CompiledRK4`)
     when either needs a gradient; another `method` goes through `odeint_engine`."""
-    if method != "rk4":
+    if method != "rk4" and model.state_size == 2:
         return odeint_engine(model, t, u, x0, theta, grid=grid, substeps=substeps, method=method)
     n = (grid.numel() - 1) // substeps + 1
     hs = grid[1:] - grid[:-1]

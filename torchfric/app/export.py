@@ -37,7 +37,8 @@ from torch import Tensor, nn
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes
 from ..models.arm import ArmModel, arm_field, arm_friction
-from ..models.simulate import SOLVERS, friction_stiffness
+from ..models.lugre import V_FLOOR, bristle_field, bristle_solve, external_torque, positive_secant
+from ..models.simulate import SOLVERS, bristle_stiffness, friction_stiffness
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]
 
@@ -127,29 +128,60 @@ class ExportedArm(nn.Module):
         self.fixed_substeps = fixed
         self.max_substeps = int(max_substeps)
         self.stability = float(SOLVERS[method])
-        self.stiffness = friction_stiffness(model, theta)
+        # A dynamic model (bristle state z, `torchfric.models.lugre`): its own stiff-stable
+        # step; `stiffness` then holds the rule's ω/c per unit dt (sub-steps = ⌈stiffness·dt⌉).
+        self.dynamic = model.state_size != 2
+        self.stiffness = (
+            bristle_stiffness(model, theta) if self.dynamic else friction_stiffness(model, theta)
+        )
+        if self.dynamic:
+            self.stability = 1.0
+        self.v_floor = V_FLOOR
         self.nominal_dt = 0.0 if dt is None else float(dt)
         self.parameters_by_name = model.physical_parameters()
         self.curve = _trace_curve(model, fric)
         self.register_buffer("c_m", arm["c_m"].detach().clone().reshape(()))
         self.register_buffer("inertia", arm["inertia"].detach().clone().reshape(()))
         # Terms the model lacks stay None, exactly as in ArmModel.dynamics.
-        for name in ("viscous", "offset", "gravity", "asymmetric"):
+        for name in ("viscous", "offset", "gravity", "asymmetric", "sigma0", "sigma1"):
             value = arm.get(name)
             self.register_buffer(name, None if value is None else value.detach().clone())
+        zero = torch.zeros((), dtype=torch.float64)
+        self.s0 = zero if self.sigma0 is None else self.sigma0.reshape(())
+        self.s1 = zero if self.sigma1 is None else self.sigma1.reshape(())
+
+    def curve_of(self, v: Tensor) -> Tensor:
+        """C(v) of the friction module alone, any shape."""
+        return self.curve(v.reshape(-1)).reshape(v.shape)
+
+    def secant(self, v: Tensor) -> Tensor:
+        """A dynamic model's r⁺(v) (`torchfric.models.lugre.secant`)."""
+        s = v.abs().clamp_min(self.v_floor)
+        return positive_secant(self.curve_of(s), s)
 
     def black_box(self, v: Tensor) -> Tensor:
-        """C(v) alone, any shape."""
-        return self.curve(v.reshape(-1)).reshape(v.shape)
+        """C(v), or a dynamic model's sliding curve v r⁺(v) (its steady state), any shape."""
+        if self.dynamic:
+            return v * self.secant(v)
+        return self.curve_of(v)
 
     @torch.jit.export
     def friction(self, v: Tensor) -> Tensor:
-        """Total friction C(v) + b v + offset + a |v| (the model's terms) at velocities v."""
+        """Total friction C(v) + b v + offset + a |v| (the model's terms) at velocities v; a
+        dynamic model's steady-state friction."""
         return arm_friction(v, self.black_box(v), self.viscous, self.offset, self.asymmetric)
+
+    def external(self, x: Tensor, u: Tensor) -> Tensor:
+        return external_torque(x, u, self.c_m, self.offset, self.gravity, self.asymmetric)
 
     @torch.jit.export
     def field(self, x: Tensor, u: Tensor) -> Tensor:
-        """The vector field ẋ = f(x, u) for states x (..., 2) and input u (broadcast)."""
+        """The vector field ẋ = f(x, u) for states x (..., 2) (a dynamic model: (..., 3),
+        [q, qdot, z]) and input u (broadcast)."""
+        if self.dynamic:
+            f = self.external(x, u)
+            r = self.secant(x[..., 1])
+            return bristle_field(x, f, r, self.s0, self.s1, self.inertia, self.viscous)
         return arm_field(
             x,
             u,
@@ -174,6 +206,8 @@ class ExportedArm(nn.Module):
     def step(self, x: Tensor, uk: Tensor, t0: Tensor, t1: Tensor) -> Tensor:
         """One solver step from t0 to t1 with held input uk (torchdiffeq's fixed-grid steps)."""
         h = t1 - t0
+        if self.dynamic:
+            return self.bristle_step(x, uk, h)
         k1 = self.field(x, uk)
         if self.method == 0:
             return x + h * k1
@@ -184,6 +218,16 @@ class ExportedArm(nn.Module):
         k3 = self.field(x + h * (k2 - k1 * (1.0 / 3.0)), uk)
         k4 = self.field(x + h * (k1 - k2 + k3), uk)
         return x + (k1 + 3.0 * (k2 + k3) + k4) * h * 0.125
+
+    def bristle_step(self, x: Tensor, uk: Tensor, h: Tensor) -> Tensor:
+        """A dynamic model's sub-step (`torchfric.models.lugre.lugre_substep`)."""
+        v = x[..., 1]
+        f = self.external(x, uk)
+        m, b = self.inertia, self.viscous
+        v_pred, _ = bristle_solve(x, f, self.s0 / self.secant(v), h, self.s0, self.s1, m, b)
+        a = self.s0 / self.secant(0.5 * (v + v_pred))
+        v1, z1 = bristle_solve(x, f, a, h, self.s0, self.s1, m, b)
+        return torch.stack([x[..., 0] + 0.5 * h * (v + v1), v1, z1], dim=-1)
 
     @torch.jit.export
     def simulate(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
@@ -207,8 +251,11 @@ class ExportedArm(nn.Module):
         if not bool((t[1:] > t[:-1]).all()):
             raise ValueError("t must be strictly increasing")
         s = self.substeps_for(t)
-        out = torch.empty([n] + x0.shape, dtype=x0.dtype)
         x = x0.clone()
+        if self.dynamic:  # the bristles start at the steady deflection of qdot0 (0 at rest)
+            z0 = self.black_box(x0[..., 1]) / self.s0
+            x = torch.cat([x0, z0.unsqueeze(-1)], dim=-1)
+        out = torch.empty([n] + x.shape, dtype=x0.dtype)
         out[0] = x
         for k in range(n - 1):
             span = t[k + 1] - t[k]
@@ -219,7 +266,7 @@ class ExportedArm(nn.Module):
                 x = self.step(x, uk, ta, tb)
                 ta = tb
             out[k + 1] = x
-        return out
+        return out[..., :2]
 
     def forward(self, t: Tensor, u: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
         return self.simulate(t, u, x0)

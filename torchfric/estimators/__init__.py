@@ -1,5 +1,7 @@
 """Estimators: what turns data and a model into identified parameters.
 
+- `propagation`: the sample-interval flows with their exact Jacobians (`make_propagator`;
+  a dynamic model's stiff-stable step);
 - `ekf`: the continuous–discrete EKF's maths — pure predict/update functions on an `EKFState`,
   Joseph form and Cholesky, the propagator (RK4 and its Jacobians), one filter pass;
 - `passes`: the one pass loop (iterate, check health, roll back, keep the best, stop on

@@ -33,7 +33,6 @@ from typing import NamedTuple
 
 import torch
 from torch import Tensor
-from torch.func import grad
 
 from ..accel import (
     CHUNK,
@@ -44,10 +43,9 @@ from ..accel import (
     iter_chunks,
     product_name,
     step_key,
-    structure_key,
 )
 from ..errors import TorchfricError
-from ..models.arm import ArmModel
+from .propagation import MatMul, Propagator, make_propagator, matmul_for, stage_jacobians
 
 __all__ = [
     "EKFState",
@@ -143,87 +141,6 @@ def measurement_matrix(measure: str, n: int) -> Tensor:
     return H
 
 
-def stage_jacobians(model: ArmModel, X: Tensor, u: Tensor, theta: Tensor) -> Tensor:
-    """Jacobians ``F_i = ∂f/∂[x, θ]`` `(S, 2, 2+k)` of the vector field at S states `X (S, 2)`.
-
-    One forward and one reverse autograd pass for all S points and both rows: the points are
-    stacked twice, row 0 of f is read from the first copy and row 1 from the second, and the
-    rows do not interact, so the gradient of the sum holds each point's Jacobian rows.
-    """
-    S, k = X.shape[0], theta.shape[-1]
-
-    def total(Z: Tensor) -> Tensor:
-        out = model.dynamics(Z[:, :2], u, *model.split(Z[:, 2:]))
-        return out[:S, 0].sum() + out[S:, 1].sum()
-
-    Z = torch.cat([X, theta.expand(S, k)], dim=-1).repeat(2, 1)
-    G = grad(total)(Z)
-    return torch.stack([G[:S], G[S:]], dim=1)
-
-
-Propagator = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
-MatMul = Callable[[Tensor, Tensor], Tensor]
-
-
-def matmul_for(n: int) -> MatMul:
-    """The matrix product for an `n`-state filter: `fused_matmul` up to n = 20, where it lets
-    the compiled step be one kernel (tanh(3), n = 10: 22 k steps/s vs 14 k with BLAS calls),
-    `torch.matmul` above, where Inductor's plain loops lose to BLAS (tanh(10), n = 24: 8.6 k
-    fused vs 17 k; tanh(30), n = 64: 430 vs 4 k; measured before predict/update used their
-    structure, with `benchmarks/ekf_speed.py`'s single-filter pass)."""
-    return fused_matmul if n <= 20 else torch.matmul
-
-
-def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None) -> Propagator:
-    """The sample-interval map ``propagate(z, u, dt) -> (x_next (2,), Φ_x (2, n))``.
-
-    `z (n,)` = [q, q̇, θ]; `S = substeps` RK4 (3/8 rule) steps with θ constant. Φ_x is the exact
-    Jacobian of that RK4 map, assembled from the stage Jacobians ``F_i`` (autograd,
-    `stage_jacobians`) by the RK4 recursion of the variational equation ``Φ̇ = F Φ``:
-    ``D_1 = Φ, K_i = F_i^x D_i + F_i^θ E, D_2 = Φ + h K_1/3, D_3 = Φ + h (K_2 − K_1/3),
-    D_4 = Φ + h (K_1 − K_2 + K_3), Φ ← Φ + h (K_1 + 3K_2 + 3K_3 + K_4)/8`` with ``E = ∂θ/∂z``.
-    The tests' reference (`make_reference_flow` in tests/ekf_reference.py) gives the same Φ by
-    `torch.func.jacrev` through the whole map.
-    `mm` is the matrix product (default `matmul_for(n)`); the returned function carries it as
-    `.mm` for `make_step`.
-    """
-    mm = mm or matmul_for(2 + model.num_parameters)
-
-    def propagate(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        x, theta = z[:2], z[2:]
-        n = z.shape[0]
-        fric, arm = model.split(theta)
-        h = dt / substeps
-        Phi = torch.eye(2, n, dtype=z.dtype)
-        for _ in range(substeps):
-            # Mean: RK4 (3/8 rule) stages.
-            k1 = model.dynamics(x, u, fric, arm)
-            x2 = x + h * k1 / 3.0
-            k2 = model.dynamics(x2, u, fric, arm)
-            x3 = x + h * (k2 - k1 / 3.0)
-            k3 = model.dynamics(x3, u, fric, arm)
-            x4 = x + h * (k1 - k2 + k3)
-            k4 = model.dynamics(x4, u, fric, arm)
-            F = stage_jacobians(model, torch.stack([x, x2, x3, x4]), u, theta)
-            Fx = F[:, :, :2]
-            # F_i^θ E: the θ-columns placed into the augmented column space (2, n).
-            Ft = torch.nn.functional.pad(F[:, :, 2:], (2, 0))
-            K1 = mm(Fx[0], Phi) + Ft[0]
-            K2 = mm(Fx[1], Phi + h * K1 / 3.0) + Ft[1]
-            K3 = mm(Fx[2], Phi + h * (K2 - K1 / 3.0)) + Ft[2]
-            K4 = mm(Fx[3], Phi + h * (K1 - K2 + K3)) + Ft[3]
-            Phi = Phi + (K1 + 3.0 * (K2 + K3) + K4) * (h / 8.0)
-            x = x + (k1 + 3.0 * (k2 + k3) + k4) * (h / 8.0)
-        return x, Phi
-
-    propagate.mm = mm  # type: ignore[attr-defined]
-    # what its code depends on (part of `compile_step`'s key); None for an unnamed product
-    propagate.key = step_key(  # type: ignore[attr-defined]
-        "rk4-3/8 propagator", structure_key(model), substeps, product_name(mm)
-    )
-    return propagate
-
-
 def predict(
     state: EKFState, u: Tensor, dt: Tensor, Q: Tensor, flow: Propagator, mm: MatMul = fused_matmul
 ) -> EKFState:
@@ -233,16 +150,18 @@ def predict(
     Returns the prior ``(x⁻, P⁻)``.
     """
     x, P = state
-    # Φ_x = ∂x_{k+1}/∂x*_k (2, n) of the RK4 map; θ rows are the identity (θ̇ = 0), so
-    # Φ = [Φ_x; 0 I] and Φ M Φᵀ = [[Φ_x M Φ_xᵀ, (Φ_x M)_θ], [(Φ_x M)_θᵀ, M_θθ]]: the same
-    # product as the full one, with about 4n² instead of 2n³ multiplications.
+    # Φ_x = ∂x_{k+1}/∂x*_k (s, n) of the RK4 map (s = 2 states, 3 for a dynamic model); θ rows
+    # are the identity (θ̇ = 0), so Φ = [Φ_x; 0 I] and
+    # Φ M Φᵀ = [[Φ_x M Φ_xᵀ, (Φ_x M)_θ], [(Φ_x M)_θᵀ, M_θθ]]: the same product as the full one,
+    # with about 2s·n² instead of 2n³ multiplications.
     x_next, jac_x = flow(x, u, dt)
-    x_prior = torch.cat([x_next, x[2:]])
+    s = jac_x.shape[0]
+    x_prior = torch.cat([x_next, x[s:]])
 
     def sandwich(M: Tensor) -> Tensor:
-        AM = mm(jac_x, M)  # (2, n)
-        top = torch.cat([mm(AM, jac_x.T), AM[:, 2:]], dim=1)
-        return torch.cat([top, torch.cat([AM[:, 2:].T, M[2:, 2:]], dim=1)], dim=0)
+        AM = mm(jac_x, M)  # (s, n)
+        top = torch.cat([mm(AM, jac_x.T), AM[:, s:]], dim=1)
+        return torch.cat([top, torch.cat([AM[:, s:].T, M[s:, s:]], dim=1)], dim=0)
 
     # P⁻ = Φ P Φᵀ + ½ (Φ Q Φᵀ + Q) dt
     P_prior = sandwich(P) + 0.5 * (sandwich(Q) + Q) * dt

@@ -127,7 +127,9 @@ def make_batched_step(
     code (`torchfric.accel.step_key`)."""
     # The product rule of one filter (`matmul_for`; with the chunked scan, tanh(3): 186 k / 272 k
     # / 328 k filter-steps/s at K = 16 / 256 / 1024 fused, against 92 k / 126 k / 125 k BLAS).
-    flow = make_propagator(model, substeps, mm=mm or matmul_for(2 + model.num_parameters))
+    flow = make_propagator(
+        model, substeps, mm=mm or matmul_for(model.state_size + model.num_parameters)
+    )
     batched = vmap(make_step(flow), in_dims=(0, 0, None, None, None, 0, None, 0, None))
     out = compile_with_fallback(batched) if compile else batched
     out.key = step_key("batched step", flow.key, product_name(flow.mm))  # type: ignore[attr-defined]
@@ -157,7 +159,7 @@ def make_masked_step(
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
     (`torchfric.native`: one member traced, four per SIMD vector, split across the cores); else,
     or when that path cannot translate the model, the Inductor scan of the vmapped step."""
-    mm = mm or matmul_for(2 + model.num_parameters)
+    mm = mm or matmul_for(model.state_size + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
     key = step_key("ensemble masked step", batched.key)  # type: ignore[attr-defined]
 
@@ -339,7 +341,7 @@ def identify_ekf_ensemble(
     exps = experiment_list(experiments, tuning, k, "identify_ekf_ensemble")
     thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
     callback = callback or Callback()
-    Q, P0_xx, H, R = tuning.matrices(k)
+    Q, P0_xx, H, R = tuning.matrices(k, model.state_size)
     Qk, Rk = Q * q_scale[:, None, None], R * r_scale[:, None, None]
     P_theta = tuning.initial_P_theta(model, thetas)
     step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
@@ -397,8 +399,7 @@ def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
     read once per experiment. A member that fails keeps its θ and ``P_θθ`` from before that
     experiment and gets the reason (pass, experiment, sample) in `PassSums.failures`.
     """
-    f64 = torch.float64
-    K = ledger.theta.shape[0]
+    f64, K = torch.float64, ledger.theta.shape[0]
     theta, P_theta = ledger.theta, ledger.P_theta
     good = ledger.running()
     fail_at = torch.full((K,), -1, dtype=torch.long)
@@ -418,8 +419,9 @@ def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
             )
         samples += exp.n
         f.callback.on_progress(p, samples, f.total)
-        theta = torch.where(good[:, None], x[:, 2:], theta)
-        P_theta = torch.where(good[:, None, None], P[:, 2:, 2:], P_theta)
+        s = f.P0_xx.shape[0]  # states before θ (3 with a bristle state)
+        theta = torch.where(good[:, None], x[:, s:], theta)
+        P_theta = torch.where(good[:, None, None], P[:, s:, s:], P_theta)
     return PassSums(theta, P_theta, P, *sums, samples, failures)
 
 

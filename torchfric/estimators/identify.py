@@ -63,7 +63,7 @@ def identify_ekf(
     tuning = tuning or EKFTuning()
     exps = experiment_list(experiments, tuning, model.num_parameters, "identify_ekf")
     callback = callback or Callback()
-    Q, P0_xx, H, R = tuning.matrices(model.num_parameters)
+    Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     data = measured_data(exps, tuning.measure)
     step_fn = make_step(make_propagator(model, tuning.substeps), compile=tuning.compile)
     total = sum(e.n for e, _, _ in data)
@@ -101,7 +101,8 @@ def _filter_pass(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
             state, stats = _filter_with_progress(EKFState(x[0], P[0]), u, y, dt, f, p, samples)
         except FilterFailure as fail:
             raise _divergence(fail, p, exp, ledger) from None
-        theta, P_theta = state.x[2:].clone()[None], state.P[2:, 2:].clone()[None]
+        s = f.P0_xx.shape[0]  # states before θ
+        theta, P_theta = state.x[s:].clone()[None], state.P[s:, s:].clone()[None]
         sum_e2 += stats.sum_e2
         sum_nis += stats.sum_nis
         loglik += stats.loglik

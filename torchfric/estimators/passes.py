@@ -334,11 +334,13 @@ def initial_belief(
 ) -> tuple[Tensor, Tensor]:
     """The belief at the start of `exp` for K members: ``x = [q_0, q̇_0, θ]`` `(K, n)` (q̇_0 = 0
     without a velocity) and P `(K, n, n)` with ``P_xx = P0_xx``, ``P_θθ`` carried, cross terms
-    zero."""
+    zero. A dynamic model's P0_xx `(3, 3)` adds its bristle state, started at rest (z = 0)."""
     K, k = theta.shape
+    s = P0_xx.shape[0]
     x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
-    x = torch.cat([x0.to(torch.float64).expand(K, 2), theta], dim=1)
-    P = torch.zeros(K, 2 + k, 2 + k, dtype=torch.float64)
-    P[:, :2, :2] = P0_xx
-    P[:, 2:, 2:] = P_theta
+    x0 = torch.cat([x0.to(torch.float64), x0.new_zeros(s - 2, dtype=torch.float64)])
+    x = torch.cat([x0.expand(K, s), theta], dim=1)
+    P = torch.zeros(K, s + k, s + k, dtype=torch.float64)
+    P[:, :s, :s] = P0_xx
+    P[:, s:, s:] = P_theta
     return x, P

@@ -123,15 +123,15 @@ class EKFTuning:
         if not (self.theta_bound > 0):
             raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")
 
-    def matrices(self, k: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(Q (n,n), P0_xx (2,2), H (m,n), R (m,m))`` for a model with k parameters."""
-        n = 2 + k
-        Q = torch.diag(
-            torch.cat(
-                [as_vector(self.q_state, 2, "q_state"), as_vector(self.q_theta, k, "q_theta")]
-            )
-        )
-        P0_xx = torch.diag(as_vector(self.p0_state, 2, "p0_state"))
+    def matrices(self, k: int, states: int = 2) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(Q (n,n), P0_xx (s,s), H (m,n), R (m,m))`` for a model with k parameters and s
+        states (3 for a dynamic model: its bristle state z gets no process noise and P0 = 0,
+        z starts at rest), ``n = s + k``."""
+        n = states + k
+        pad = torch.zeros(states - 2, dtype=torch.float64)
+        q_x = torch.cat([as_vector(self.q_state, 2, "q_state"), pad])
+        Q = torch.diag(torch.cat([q_x, as_vector(self.q_theta, k, "q_theta")]))
+        P0_xx = torch.diag(torch.cat([as_vector(self.p0_state, 2, "p0_state"), pad]))
         H = measurement_matrix(self.measure, n)
         R = torch.diag(torch.as_tensor(self.r, dtype=torch.float64))
         return Q, P0_xx, H, R

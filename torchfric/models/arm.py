@@ -22,6 +22,7 @@ from torch import Tensor, nn
 
 from ..errors import TorchfricError
 from .friction import Friction, make_friction
+from .lugre import DYNAMICS, lugre_field, lugre_substep, sliding_curve
 
 __all__ = ["ArmModel", "arm_field", "arm_friction"]
 
@@ -108,9 +109,12 @@ class ArmModel(nn.Module):
             the two directions' viscous slopes); ``None`` = off (not in θ).
         estimate_c_m: put c_m in θ (log space when `log_positive`).
         log_positive: store M, b, g_c, c_m as logarithms in θ so estimators cannot make them negative.
+        dynamic: "none" (static friction, state [q, q̇]) or "lugre": a bristle state z
+            (`torchfric.models.lugre`), state [q, q̇, z], whose sliding curve is the friction
+            module's; σ0 [N m/rad] and σ1 [N m s/rad] (`sigma0`, `sigma1`, > 0) join θ.
 
     θ order: friction parameters (the friction's own order), then b, M, offset, gravity,
-    asymmetric, c_m (each only when enabled) —
+    asymmetric, c_m, σ0, σ1 (each only when enabled) —
     the paper's ``θ = [W1ᵀ W2 b M]ᵀ`` for the tanh model.
     """
 
@@ -126,8 +130,14 @@ class ArmModel(nn.Module):
         estimate_c_m: bool = False,
         log_positive: bool = True,
         asymmetric: float | None = None,
+        dynamic: str = "none",
+        sigma0: float = 1e3,
+        sigma1: float = 1.0,
     ) -> None:
         super().__init__()
+        if dynamic not in DYNAMICS:
+            raise TorchfricError(f"dynamic = {dynamic!r} is not known; choose one of {DYNAMICS}")
+        self.dynamic = dynamic
         if not isinstance(friction, Friction):
             raise TorchfricError(
                 f"friction must be a torchfric Friction module, got {type(friction).__name__}"
@@ -151,6 +161,9 @@ class ArmModel(nn.Module):
         else:
             self._check_value("c_m", c_m, positive=True)
             self.register_buffer("c_m_fixed", torch.tensor(float(c_m), dtype=torch.float64))
+        if dynamic == "lugre":
+            self._add("sigma0", sigma0, positive=True)
+            self._add("sigma1", sigma1, positive=True)
         self._k_friction = friction.num_parameters
 
     # -- construction helpers ----------------------------------------------------------------
@@ -249,6 +262,11 @@ class ArmModel(nn.Module):
         return fric, arm
 
     # -- dynamics ------------------------------------------------------------------------------
+    @property
+    def state_size(self) -> int:
+        """Entries of the state: 2 ([q, q̇]), or 3 ([q, q̇, z]) for a dynamic friction model."""
+        return 3 if self.dynamic == "lugre" else 2
+
     def vector_field(self, x: Tensor, u: Tensor, theta: Tensor | None = None) -> Tensor:
         """``f(x, u; θ)``: `x (..., 2)`, `u (...)` (broadcast), θ `(k,)` → `ẋ (..., 2)`.
 
@@ -262,7 +280,10 @@ class ArmModel(nn.Module):
         self, x: Tensor, u: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]
     ) -> Tensor:
         """`vector_field` with θ already split into physical dicts (`split`): hoist the split out
-        of inner loops, where θ is constant."""
+        of inner loops, where θ is constant. A dynamic model's field (`lugre_field`) is stiff:
+        simulation and the EKF step it with `substep`."""
+        if self.dynamic == "lugre":
+            return lugre_field(self.friction, x, u, fric, arm)
         return arm_field(
             x,
             u,
@@ -275,16 +296,35 @@ class ArmModel(nn.Module):
             arm.get("asymmetric"),
         )
 
+    def substep(
+        self,
+        x: Tensor,
+        u: Tensor,
+        h: Tensor | float,
+        fric: dict[str, Tensor],
+        arm: dict[str, Tensor],
+    ) -> Tensor:
+        """One step of a dynamic model's stiff-stable integrator (`lugre_substep`), `x (..., 3)`."""
+        return lugre_substep(self.friction, x, u, h, fric, arm)
+
+    def black_box(self, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
+        """The velocity-dependent part of the (steady-state) friction besides the white-box
+        terms: the module's ``C(v)``, or for a dynamic model its sliding curve ``v r⁺(v)``."""
+        if self.dynamic == "lugre":
+            return sliding_curve(self.friction, v, fric)
+        return self.friction.evaluate(v, fric)
+
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         return self.vector_field(x, u)
 
     def friction_torque(self, v: Tensor, theta: Tensor | None = None) -> Tensor:
         """Total velocity-dependent friction ``b v + C(v) + offset [+ a |v|]`` at velocities `v`,
-        for the module's own θ or a given θ `(k,)` (estimation coordinates)."""
+        for the module's own θ or a given θ `(k,)` (estimation coordinates). For a dynamic model,
+        its steady-state curve (C replaced by `black_box`'s sliding curve)."""
         fric, arm = self.split(self.theta_vector() if theta is None else theta)
         return arm_friction(
             v,
-            self.friction.evaluate(v, fric),
+            self.black_box(v, fric),
             arm.get("viscous"),
             arm.get("offset"),
             arm.get("asymmetric"),
@@ -328,6 +368,24 @@ class ArmModel(nn.Module):
         values = self.to_physical(self.get_theta())
         return {name: float(v) for name, v in zip(self.theta_names, values, strict=True)}
 
+    def static_twin(self) -> ArmModel:
+        """A static copy (no bristles) with the same friction and white-box values: its θ is
+        this θ without σ0 and σ1 (they come last)."""
+        spec = self.spec()
+        spec.pop("dynamic", None)
+        spec["arm"] = {k: v for k, v in spec["arm"].items() if k not in ("sigma0", "sigma1")}
+        return ArmModel.from_spec(spec).set_theta(self.get_theta()[: self._static_size])
+
+    def with_static(self, static: ArmModel) -> ArmModel:
+        """A copy of this dynamic model with the θ of `static` (a `static_twin`-shaped model)
+        and this model's σ0, σ1."""
+        theta = torch.cat([static.get_theta(), self.get_theta()[self._static_size :]])
+        return ArmModel.from_spec(self.spec()).set_theta(theta)
+
+    @property
+    def _static_size(self) -> int:
+        return self.num_parameters - (2 if self.dynamic == "lugre" else 0)
+
     # -- (de)serialisation -----------------------------------------------------------------------
     def spec(self) -> dict[str, Any]:
         """Plain-type description that `from_spec` rebuilds the model from (values included)."""
@@ -344,6 +402,8 @@ class ArmModel(nn.Module):
             "c_m": float(self.c_m.detach()),
             "estimate_c_m": self.estimate_c_m,
             "log_positive": self.log_positive,
+            # only for a dynamic model: a static model's spec (and structure key) is as before
+            **({"dynamic": self.dynamic} if self.dynamic != "none" else {}),
         }
 
     @classmethod
@@ -363,7 +423,8 @@ class ArmModel(nn.Module):
         arm = {
             k: (
                 max(v, _TINY)
-                if k in ("inertia", "viscous", "gravity", "c_m") and spec["log_positive"]
+                if k in ("inertia", "viscous", "gravity", "c_m", "sigma0", "sigma1")
+                and spec["log_positive"]
                 else v
             )
             for k, v in spec["arm"].items()
@@ -378,6 +439,11 @@ class ArmModel(nn.Module):
             estimate_c_m=spec["estimate_c_m"],
             log_positive=spec["log_positive"],
             asymmetric=arm.get("asymmetric"),
+            **(
+                {"dynamic": "lugre", "sigma0": arm["sigma0"], "sigma1": arm["sigma1"]}
+                if spec.get("dynamic", "none") == "lugre"
+                else {}
+            ),
         )
 
 

@@ -1,0 +1,202 @@
+"""LuGre dynamic friction around a learned sliding curve (``model.dynamic = "lugre"``).
+
+The arm gains an unmeasured bristle state ``z``::
+
+    ż = q̇ − σ0 |q̇| z / g(q̇),     F = σ0 z + σ1 ż (+ b q̇ + the white-box terms),
+
+and ``M q̈ = c_m u − F``. The sliding curve ``g > 0`` comes from the odd friction module ``C``
+(tanh or polytopic) through its *secant* ``r(v) = C(v)/v``, an even function: ``g(v) = |v| r⁺(v)``
+with ``r⁺ = sqrt(r² + ε²) > 0``. So ``σ0 |q̇| / g(q̇) = σ0 / r⁺(q̇)`` is finite at q̇ = 0 (the
+bristles relax at ``σ0/C'(0)`` there), g is positive for every parameter value by construction
+(no penalty), and in steady sliding ``z = q̇ r⁺(q̇)/σ0``: the friction is ``q̇ r⁺(q̇) + b q̇``,
+which is the learned curve ``C(q̇) + b q̇`` wherever C has the sign of q̇ (every physical
+friction curve) and stays odd and zero at zero for any θ (`sliding_curve`).
+
+σ0 is stiff (the bristle rate ``σ0/r⁺`` reaches 10⁴–10⁶ 1/s), so the state is not integrated by
+explicit Runge–Kutta steps but by the synthetic rig's scheme (`torchfric.data.rig_model`), here
+in torch operations: over a sub-step ``h`` with the bristle rate ``a`` frozen and the velocity
+linear, ``ż = v − a z`` is solved exactly (exponential integrator), the friction enters through
+the exact mean and increment of z, and the momentum balance is linear in the new velocity, so
+one division solves it: stable at any stiffness, exact ``F = C(v) + b v`` in steady sliding.
+``a`` is taken at the sub-step's midpoint velocity from a first solve with ``a(v)`` (a
+predictor–corrector: second order). The map is differentiable (the EKF's Φ, output error's
+gradients) and made of operations the native code generator translates.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .friction import Friction
+
+__all__ = [
+    "DYNAMICS",
+    "SECANT_FLOOR",
+    "V_FLOOR",
+    "bristle_field",
+    "bristle_solve",
+    "external_torque",
+    "positive_secant",
+    "secant",
+    "sliding_curve",
+    "lugre_field",
+    "lugre_substep",
+]
+
+# `model.dynamic` values: "none" (the static arm, state [q, q̇]) and "lugre" ([q, q̇, z]).
+DYNAMICS: tuple[str, ...] = ("none", "lugre")
+
+# ε of r⁺ = sqrt(r² + ε²) [N m s/rad]: far below any physical secant (≥ 1e-4 for a friction of
+# 1e-3 N m at 10 rad/s) yet keeps g > 0 where a curve crosses zero.
+SECANT_FLOOR = 1e-9
+V_FLOOR = 1e-6  # |v| below this reads the secant at 1e-6 rad/s (= C'(0) to rounding)
+
+
+def positive_secant(c: Tensor, s: Tensor) -> Tensor:
+    """``r⁺ = sqrt((c/s)² + ε²)`` from the curve's value ``c = C(s)`` at ``s = max(|v|, 1e-6)``."""
+    r = c / s
+    return torch.sqrt(r * r + 1e-18)  # ε² = SECANT_FLOOR² (a literal: TorchScript reads no globals)
+
+
+def secant(friction: Friction, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
+    """``r⁺(v) = sqrt((C(v)/v)² + ε²)`` (even in v, > 0, finite at 0) for physical parameters
+    `fric` of the odd `friction`. C odd makes ``C(v)/v = C(|v|)/|v|``, read at ``|v| ≥ 1e-6``."""
+    s = v.abs().clamp_min(V_FLOOR)
+    return positive_secant(friction.evaluate(s, fric), s)
+
+
+def sliding_curve(friction: Friction, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
+    """The dynamic model's steady-state friction without its white-box terms, ``v r⁺(v)``:
+    ``sign(v) g(v)``, odd and zero at zero; equal to ``C(v)`` where C has the sign of v."""
+    return v * secant(friction, v, fric)
+
+
+# The functions below are TorchScript-compatible (tensors and optional tensors only): the
+# exported module (`torchfric.app.export`) compiles them, so its steps are these very ones.
+
+
+def external_torque(
+    x: Tensor,
+    u: Tensor,
+    c_m: Tensor,
+    offset: Tensor | None = None,
+    gravity: Tensor | None = None,
+    asymmetric: Tensor | None = None,
+) -> Tensor:
+    """The torque besides the bristles and b q̇: ``c_m u − offset − g_c sin q − a |q̇|``."""
+    torque = c_m * u
+    if offset is not None:
+        torque = torque - offset
+    if gravity is not None:
+        torque = torque - gravity * torch.sin(x[..., 0])
+    if asymmetric is not None:
+        torque = torque - asymmetric * x[..., 1].abs()
+    return torque
+
+
+def bristle_field(
+    x: Tensor,
+    f: Tensor,
+    r: Tensor,
+    sigma0: Tensor,
+    sigma1: Tensor,
+    inertia: Tensor,
+    viscous: Tensor | None = None,
+) -> Tensor:
+    """``ẋ = [q̇, (f − σ0 z − σ1 ż − b q̇)/M, ż]`` `(..., 3)` with ``ż = q̇ − σ0 z / r`` for the
+    external torque `f` and the secant ``r = r⁺(q̇)``."""
+    v, z = x[..., 1], x[..., 2]
+    zdot = v - sigma0 * z / r
+    force = sigma0 * z + sigma1 * zdot
+    if viscous is not None:
+        force = force + viscous * v
+    return torch.stack([v, (f - force) / inertia, zdot], dim=-1)
+
+
+def _weights(x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``E = e^{−x}``, ``φ = (1 − E)/x``, ``ψ = (1 − φ)/x``, ``χ = (1/2 − ψ)/x`` for x = a h ≥ 0,
+    by their Taylor series below 1e-2 (closed forms there lose digits to cancellation); the
+    closed-form branch reads a safe x where the series is used, so neither branch makes NaN
+    (nor NaN gradients)."""
+    small = x < 1e-2
+    xs = torch.where(small, torch.ones_like(x), x)
+    em1 = torch.expm1(-xs)
+    phi_c = -em1 / xs
+    psi_c = (1.0 - phi_c) / xs
+    chi_c = (0.5 - psi_c) / xs
+    xt = torch.where(small, x, torch.zeros_like(x))
+    phi_s = 1.0 - xt * (0.5 - xt * (1.0 / 6.0 - xt * (1.0 / 24.0 - xt / 120.0)))
+    psi_s = 0.5 - xt * (1.0 / 6.0 - xt * (1.0 / 24.0 - xt * (1.0 / 120.0 - xt / 720.0)))
+    chi_s = 1.0 / 6.0 - xt * (1.0 / 24.0 - xt * (1.0 / 120.0 - xt * (1.0 / 720.0 - xt / 5040.0)))
+    return (
+        torch.where(small, 1.0 - xt * phi_s, 1.0 + em1),
+        torch.where(small, phi_s, phi_c),
+        torch.where(small, psi_s, psi_c),
+        torch.where(small, chi_s, chi_c),
+    )
+
+
+def bristle_solve(
+    x: Tensor,
+    f: Tensor,
+    a: Tensor,
+    h: Tensor,
+    sigma0: Tensor,
+    sigma1: Tensor,
+    inertia: Tensor,
+    viscous: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """One sub-step ``h`` from `x (..., 3)` with the bristle rate `a` frozen and the external
+    torque `f` held: the new ``(q̇, z)`` (see the module docstring)."""
+    v, z = x[..., 1], x[..., 2]
+    E, phi, psi, chi = _weights(a * h)
+    vh = v * h
+    z_mean0 = z * phi + vh * (psi - chi)  # mean of z over the step, without its v1 term
+    dz0 = z * (E - 1.0) + vh * (phi - psi)  # z1 − z without its v1 term
+    num = inertia * v + h * f - h * sigma0 * z_mean0 - sigma1 * dz0
+    den = inertia + h * h * sigma0 * chi + sigma1 * h * psi
+    if viscous is not None:
+        half = 0.5 * h * viscous
+        num = num - half * v
+        den = den + half
+    v1 = num / den
+    return v1, z + dz0 + v1 * h * psi
+
+
+def lugre_field(
+    friction: Friction, x: Tensor, u: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]
+) -> Tensor:
+    """The continuous vector field of the model `(..., 3)` (`bristle_field`; stiff: for
+    reference and tests, integrate it with `lugre_substep`)."""
+    f = _external(x, u, arm)
+    r = secant(friction, x[..., 1], fric)
+    return bristle_field(x, f, r, arm["sigma0"], arm["sigma1"], arm["inertia"], arm.get("viscous"))
+
+
+def _external(x: Tensor, u: Tensor, arm: dict[str, Tensor]) -> Tensor:
+    return external_torque(
+        x, u, arm["c_m"], arm.get("offset"), arm.get("gravity"), arm.get("asymmetric")
+    )
+
+
+def lugre_substep(
+    friction: Friction,
+    x: Tensor,
+    u: Tensor,
+    h: Tensor | float,
+    fric: dict[str, Tensor],
+    arm: dict[str, Tensor],
+) -> Tensor:
+    """One sub-step of length `h` with held input `u` from states `x (..., 3)` = [q, q̇, z]:
+    the exponential bristle update with the rate at the midpoint velocity (predicted by a first
+    solve with the rate at q̇), the momentum balance linear in the new velocity,
+    ``q1 = q + h (v + v1)/2``."""
+    v = x[..., 1]
+    f = _external(x, u, arm)
+    h = torch.as_tensor(h, dtype=x.dtype)
+    s0, s1, M, b = arm["sigma0"], arm["sigma1"], arm["inertia"], arm.get("viscous")
+    v_pred, _ = bristle_solve(x, f, s0 / secant(friction, v, fric), h, s0, s1, M, b)
+    mid = 0.5 * (v + v_pred)
+    v1, z1 = bristle_solve(x, f, s0 / secant(friction, mid, fric), h, s0, s1, M, b)
+    return torch.stack([x[..., 0] + 0.5 * h * (v + v1), v1, z1], dim=-1)
