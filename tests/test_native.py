@@ -126,6 +126,12 @@ def _models() -> dict[str, ArmModel]:
             asymmetric=0.003,
             estimate_c_m=True,
         ),  # fmt: skip
+        "lugre tanh": ArmModel(tanh, inertia=0.035, viscous=0.012, c_m=16.0, dynamic="lugre",
+                               sigma0=1200.0, sigma1=11.0),  # fmt: skip
+        "lugre polytopic + terms": ArmModel(
+            PolytopicFriction(3), inertia=0.03, viscous=None, c_m=16.0, offset=-0.02,
+            gravity=0.05, asymmetric=0.003, dynamic="lugre", sigma0=3e4, sigma1=40.0,
+        ),  # fmt: skip
     }
 
 
@@ -146,11 +152,13 @@ def test_native_filter_step_equals_eager(name: str, measure: str) -> None:
     k = model.num_parameters
     r = (1e-3,) if measure == "position" else (1e-3, 1e-2)
     tuning = EKFTuning(measure=measure, p0_theta=0.05, r=r)
-    Q, _, H, R = tuning.matrices(k)
+    s = model.state_size  # 3 for a dynamic model: [q, q̇, z]
+    Q, _, H, R = tuning.matrices(k, s)
     step = make_step(make_propagator(model, 2), compile=True)
     u, y = _stretch(51, H.shape[0])
-    x0 = torch.cat([y[0, :1], torch.tensor([0.0]), model.get_theta()])
-    P0 = torch.block_diag(torch.diag(torch.tensor([1e-6, 1e-4])), 0.05 * torch.eye(k))
+    x0 = torch.cat([y[0, :1], torch.zeros(s - 1), model.get_theta()])
+    p0_x = torch.tensor([1e-6, 1e-4, 1e-10][:s])
+    P0 = torch.block_diag(torch.diag(p0_x), 0.05 * torch.eye(k))
     consts = (torch.tensor(1e-3), Q, H, R, torch.tensor(1e6))
     xs, valid = (u[:-1], y[1:]), torch.ones(50, dtype=torch.bool)
     (x_n, P_n), outs_n = step.chunk((x0, P0), xs, valid, consts)

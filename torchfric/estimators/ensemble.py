@@ -127,9 +127,7 @@ def make_batched_step(
     code (`torchfric.accel.step_key`)."""
     # The product rule of one filter (`matmul_for`; with the chunked scan, tanh(3): 186 k / 272 k
     # / 328 k filter-steps/s at K = 16 / 256 / 1024 fused, against 92 k / 126 k / 125 k BLAS).
-    flow = make_propagator(
-        model, substeps, mm=mm or matmul_for(model.state_size + model.num_parameters)
-    )
+    flow = make_propagator(model, substeps, mm=mm)  # mm None: `matmul_for` the filter's size
     batched = vmap(make_step(flow), in_dims=(0, 0, None, None, None, 0, None, 0, None))
     out = compile_with_fallback(batched) if compile else batched
     out.key = step_key("batched step", flow.key, product_name(flow.mm))  # type: ignore[attr-defined]

@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import torch
 from torch import Tensor
-from torch.func import grad, jacrev
+from torch.func import grad
 
 from ..accel import fused_matmul, product_name, step_key, structure_key
 from ..models.arm import ArmModel
@@ -103,19 +103,21 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
 def _stepped_propagator(model: ArmModel, substeps: int, mm: MatMul) -> Propagator:
     """`make_propagator` for a dynamic model (state ``[q, q̇, z]``): `substeps` steps of its
     stiff-stable integrator (`ArmModel.substep`) per sample interval, Φ_x `(3, n)` the exact
-    Jacobian of that map by reverse-mode autograd (three rows)."""
+    Jacobian of that map by one reverse autograd pass, with `stage_jacobians`' device: the map
+    runs on three copies of z and the gradient of the sum of copy i's entry i holds row i (no
+    basis vectors, which the native code generator would have to translate)."""
     nx = model.state_size
 
-    def sample_map(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        x, theta = z[:nx], z[nx:]
+    def rows(Z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+        x, theta = Z[:, :nx], Z[:, nx:]
         fric, arm = model.split(theta)
         h = dt / substeps
         for _ in range(substeps):
             x = model.substep(x, u, h, fric, arm)
-        return x, x
+        return sum(x[i, i] for i in range(nx)), x[0]
 
     def propagate(z: Tensor, u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
-        Phi, x = jacrev(sample_map, has_aux=True)(z, u, dt)
+        Phi, x = grad(rows, has_aux=True)(z.expand(nx, z.shape[0]), u, dt)
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]

@@ -130,13 +130,19 @@ def register_engine(name: str, engine: Engine) -> None:
 
 
 def _engine(name: str) -> Engine:
-    """The registered engine `name`, or a one-line error saying why there is none."""
+    """The registered engine `name`, or a one-line error saying why there is none. An engine
+    that another part of torchfric registers (`_REGISTERED_BY`) is registered here on first
+    use, by importing that module (``import torchfric`` is lazy and no longer imports it)."""
+    if name not in ENGINES and name in _REGISTERED_BY:
+        import importlib
+
+        importlib.import_module(_REGISTERED_BY[name])
     if name in ENGINES:
         return ENGINES[name]
     if name in _REGISTERED_BY:
         raise TorchfricError(
             f"simulation engine {name!r} is not registered: import {_REGISTERED_BY[name]} "
-            "(importing torchfric does) to register it"
+            "to register it"
         )
     raise TorchfricError(f"unknown simulation engine {name!r}; choose one of {tuple(ENGINES)}")
 
