@@ -34,6 +34,7 @@ from torchfric.data.rig import EXPERIMENTS
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import MEASUREMENTS
 from torchfric.models.friction import FRICTIONS
+from torchfric.models.lugre import DYNAMICS
 from torchfric.models.simulate import SOLVERS
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -168,6 +169,7 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
         "estimator.method": set(ESTIMATORS),
         "estimator.measure": set(MEASUREMENTS),
         "model.init": set(INIT_KEYWORDS),
+        "model.dynamic": set(DYNAMICS),
     }
     for key, choices in expected.items():
         assert _choices(entries[key]["allowed"]) == choices, key
@@ -248,6 +250,7 @@ RULES: dict[str, tuple[list[str], list[str]]] = {
         ["model.friction=polytopic", "model.size=5"],
         ["model.friction=polytopic", "model.size=4"],
     ),
+    "model.sizes": (["model.size=auto", "model.sizes=[1, 2]"], ["model.sizes=[1, 2]"]),
     "model.viscous": (["model.friction=polytopic", "model.viscous=0"], ["model.viscous=0"]),
     "estimator.passes": (
         [f"estimator.passes={MAX_PASSES}"],

@@ -23,6 +23,8 @@ from .config import Config
 from .figures import si_unit
 from .loading import check_resources, config_model, initial_model, load_data
 from .rundir import next_run_dir
+from .sizing import candidate_sizes
+from .sizing import sized as with_size
 
 __all__ = ["check_run"]
 
@@ -96,7 +98,9 @@ def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -
     ]
     c_m = f"c_m {m.c_m:g}" + (" (estimated)" if m.estimate_c_m else " (known, fixed)")
     sized = m.friction in ("tanh", "polytopic")
-    what = f"{m.friction} friction" + (f", size {m.size}" if sized else "")
+    tries = ", ".join(map(str, candidate_sizes(cfg))) if m.size == "auto" else ""
+    size = f"auto (tries {tries}; the largest is started here)" if tries else m.size
+    what = f"{m.friction} friction" + (f", size {size}" if sized else "")
     lines = [
         _line(
             "model",
@@ -157,9 +161,11 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     torch.manual_seed(cfg.seed)  # as train does: the same starting point
     found: list[str] = []
     train, val, test, _ = load_data(cfg, warnings=found)
-    base = config_model(cfg, train)
-    check_resources(cfg, train, base)
-    start, init_kind = initial_model(cfg, train, base)
+    # model.size = "auto": the largest size tried is the one checked and started here
+    one = with_size(cfg, max(candidate_sizes(cfg))) if cfg.model.size == "auto" else cfg
+    base = config_model(one, train)
+    check_resources(one, train, base)
+    start, init_kind = initial_model(one, train, base)
     run = _run_dir(cfg)
     d = cfg.data
     lines = [

@@ -9,6 +9,7 @@ the estimator starts from.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -161,7 +162,17 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
         asymmetric=m.asymmetric,
         estimate_c_m=m.estimate_c_m,
         log_positive=m.log_positive,
+        **_bristles(m),
     )
+
+
+def _bristles(m: Any) -> dict[str, Any]:
+    """The dynamic-friction arguments of `ArmModel` from `[model]` (none for a static model);
+    σ1 unset is critically damped, ``2 sqrt(σ0 M)``."""
+    if m.dynamic == "none":
+        return {}
+    sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(m.sigma0 * m.inertia)
+    return {"dynamic": m.dynamic, "sigma0": m.sigma0, "sigma1": sigma1}
 
 
 def initial_model(
@@ -175,8 +186,19 @@ def initial_model(
     if init == "config":
         return base, "config"
     if init == "prefit":
-        return prefit(base, train).model, "prefit"
+        if base.state_size == 2:
+            return prefit(base, train).model, "prefit"
+        # A dynamic model: the static twin's pre-fit (its θ is the dynamic θ without σ0, σ1,
+        # which keep their configured guesses: equation error cannot see the bristles).
+        static = prefit(base.static_twin(), train).model
+        return base.with_static(static), "prefit"
     warm = load_checkpoint(init)
+    if (
+        base.state_size != 2
+        and warm.state_size == 2
+        and warm.theta_names == base.static_twin().theta_names
+    ):
+        return base.with_static(warm), f"checkpoint:{init}"  # a static fit starts a LuGre one
     if warm.theta_names != base.theta_names:
         raise TorchfricError(
             f"model.init checkpoint {init} has parameters {warm.theta_names} but this config's model "

@@ -27,6 +27,7 @@ from ..estimators.passes import EKFResult, PassRecord
 from ..estimators.selection import select_by_fit
 from ..estimators.uncertainty import parameter_std
 from ..models.arm import ArmModel
+from .sizing import size_lines
 from .snapshots import ekf_payload
 
 __all__ = [
@@ -215,6 +216,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
             f"(Q ×{ens['best_q_scale']:g}, R ×{ens['best_r_scale']:g}) by "
             f"{ens['selected_by'].replace('_', ' ')}, after its {total} passes"
         )
+    if metrics.get("sizes"):
+        lines += size_lines(metrics["sizes"])
     if best is not None and total:
         why = (
             "best validation FIT"

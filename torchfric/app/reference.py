@@ -59,7 +59,10 @@ _RULES: dict[str, str] = {
     "data.validation": "no `rig:` records when `data.train` is your own data",
     "data.test": "no `rig:` records when `data.train` is your own data",
     "data.stop": "> `data.start`",
-    "model.size": 'odd with `model.friction = "polytopic"`',
+    "model.size": 'odd with `model.friction = "polytopic"`; `"auto"` only with `"tanh"` or '
+    '`"polytopic"` and `model.init = "prefit"` or `"config"`',
+    "model.sizes": 'integers >= 1, odd with `model.friction = "polytopic"`; only with '
+    '`model.size = "auto"`',
     "model.viscous": '> 0 with `model.log_positive = true` (except `model.friction = "polytopic"`)',
     "estimator.passes": f"at most {MAX_PASSES}",
     "estimator.r": "each > 0, one per channel that `estimator.measure` measures ("

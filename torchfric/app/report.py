@@ -177,6 +177,35 @@ def _fits(metrics: Mapping[str, Any]) -> str:
     return f"<table>{head}{''.join(rows)}</table>{note}"
 
 
+def _sizes(metrics: Mapping[str, Any]) -> str:
+    """The table of sizes of ``model.size = "auto"`` (metrics' ``sizes``); "" without one."""
+    sizes = metrics.get("sizes")
+    if not sizes:
+        return ""
+    rows = []
+    for r in sizes["table"]:
+        mark = '<span class="ok">chosen</span>' if r["chosen"] else ""
+        member = "–" if r["member"] < 0 else f"Q ×{r['q_scale']:g}, R ×{r['r_scale']:g}"
+        rows.append(
+            f"<tr><td class='num'>{_e(r['size'])}</td><td class='num'>{_e(r['parameters'])}</td>"
+            f"<td class='num'>{_num(r['loglik'], '.1f')}</td>"
+            f"<td class='num'>{_num(r['bic'], '.1f')}</td><td>{_e(member)}</td>"
+            f"<td class='num'>{_e(r['diverged'])} of {_e(r['members'])}</td><td>{mark}</td></tr>"
+        )
+    head = (
+        "<tr><th>size</th><th>k</th><th>log-likelihood ℓ</th><th>BIC</th><th>best filter</th>"
+        "<th>diverged</th><th></th></tr>"
+    )
+    note = (
+        f'<p class="note">model.size = "auto" ({_e(sizes.get("friction", ""))}): every size was '
+        "identified by the EKF and scored on the identification data by BIC = −2 ℓ + k ln N "
+        f"(N = {_e(sizes['samples'])} samples, k parameters), where ℓ is the log-likelihood of "
+        "the one-step innovations of a filter pass with θ held fixed, maximised over a common "
+        "scale of the noise model; the lowest BIC is kept and trained as the run's model.</p>"
+    )
+    return f"<h2>Model size</h2><table>{head}{''.join(rows)}</table>{note}"
+
+
 def _figures(
     model: ArmModel,
     P_theta: Tensor | None,
@@ -276,7 +305,8 @@ def report_html(
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
         f"<title>{_e(title)} · torchfric report</title><style>{_STYLE}</style></head><body>"
         f"<h1>{_e(title)}</h1>{_summary(metrics, title, created)}{_warnings(metrics)}"
-        f"<h2>Parameters</h2>{_parameters(metrics)}<h2>Fit</h2>{_fits(metrics)}{figures}"
+        f"{_sizes(metrics)}<h2>Parameters</h2>{_parameters(metrics)}"
+        f"<h2>Fit</h2>{_fits(metrics)}{figures}"
         "</body></html>\n"
     )
 

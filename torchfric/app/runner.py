@@ -35,6 +35,7 @@ from .observers import Printer, ProgressLines, TensorBoardLog, ValidationScores,
 from .outcome import kept_pass, kept_payload, parameter_table
 from .report import write_report
 from .rundir import RunDir, claim_run_dir, locked
+from .sizing import choose_size
 from .snapshots import (
     Snapshots,
     ekf_payload,
@@ -312,9 +313,10 @@ class _Run:
         self.warnings: list[str] = []
 
     def prepare(self) -> None:
-        """Load the data, check memory and build the initial model (none when resuming)."""
+        """Load the data, size "auto", check memory and build the initial model (not on resume)."""
         cfg = self.cfg
         self.train, self.val, self.test, self.fingerprints = load_data(cfg, warnings=self.warnings)
+        cfg, self.sizes = choose_size(cfg, self.train, self.say)  # model.size = "auto"
         base = config_model(cfg, self.train)
         check_resources(cfg, self.train, base)
         resume = self.saved is not None
@@ -468,6 +470,7 @@ class _Run:
             "initial_inertia": self.initial_inertia,
             "parameters": parameter_table(final, self.covariance),
             "dt": self.train[0].dt,
+            **({"sizes": self.sizes} if self.sizes else {}),
         }
         groups = {"validation": scores, "test": evaluate_model(final, self.test, cfg)}
         if not self.val:  # nothing held out: the identification records are scored at least

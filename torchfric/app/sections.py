@@ -13,9 +13,11 @@ from typing import ClassVar
 
 from ..errors import TorchfricError
 from ..models.friction import FRICTIONS
+from ..models.lugre import DYNAMICS
 from ..models.simulate import SOLVERS
 from .schema import (
     COLUMN_NAMES,
+    INIT_KEYWORDS,
     POSITION_UNITS,
     RIG_PREFIX,
     RIG_VALIDATION,
@@ -26,7 +28,11 @@ from .schema import (
     suggest,
 )
 
-__all__ = ["DataConfig", "LogConfig", "ModelConfig", "SimulationConfig"]
+__all__ = ["AUTO_SIZES", "DataConfig", "LogConfig", "ModelConfig", "SimulationConfig"]
+
+AUTO_SIZES: dict[str, tuple[int, ...]] = {"tanh": (1, 2, 3, 4, 5, 6, 7), "polytopic": (3, 5, 7, 9)}
+"""The sizes ``model.size = "auto"`` tries without ``model.sizes``, for the frictions that have
+a size (`torchfric.app.sizing`)."""
 
 
 @dataclass(frozen=True)
@@ -134,6 +140,11 @@ class ModelConfig(TableSection):
     Attributes:
         friction: black-box friction, a `torchfric.friction.FRICTIONS` name.
         size: neurons (tanh) or local models (polytopic, odd); ignored by the baselines.
+            "auto" chooses it from the data (tanh or polytopic): every size of `sizes` is
+            identified and the one with the lowest BIC on the identification data's fixed-θ
+            EKF innovations is kept (`torchfric.estimators.sizing`; the table of sizes is in
+            ``metrics.json`` and the report).
+        sizes: the sizes that ``size = "auto"`` tries; empty = tanh 1–7, polytopic 3, 5, 7, 9.
         c_m: motor constant, torque (or force) per unit of input (known unless
             `estimate_c_m`). Required with a user's data; ``None`` takes the rig's 16 for rig
             data (`Config` resolves it).
@@ -150,10 +161,17 @@ class ModelConfig(TableSection):
             the data.
         init: "prefit" (least-squares pre-fit on the training data), "config" (the values above)
             or the path of a checkpoint to warm-start from (stored absolute).
+        dynamic: "none" (static friction) or "lugre": a bristle state z with ``ż = q̇ − σ0 |q̇|
+            z / g(q̇)``, ``F = σ0 z + σ1 ż + b q̇``, whose sliding curve g is the friction
+            module's (`torchfric.models.lugre`); σ0 and σ1 are estimated (in log space).
+        sigma0: initial bristle stiffness σ0 [torque per unit of q] of "lugre".
+        sigma1: initial bristle damping σ1 [torque per unit of q̇]; ``None`` = critically damped
+            from σ0 and the inertia guess, ``2 sqrt(σ0 M)``.
     """
 
     friction: str = "tanh"
-    size: int = 3
+    size: int | str = 3
+    sizes: tuple[int, ...] = ()
     c_m: float | None = None
     inertia: float = 0.03
     viscous: float = 0.01
@@ -165,14 +183,17 @@ class ModelConfig(TableSection):
     torque_scale: float | None = None
     init: str = "prefit"
     asymmetric: float | None = None
+    dynamic: str = "none"
+    sigma0: float = 1000.0
+    sigma1: float | None = None
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ("init",)
 
     def __post_init__(self) -> None:
         c = Check(self, "model")
         c.string("friction", choices=tuple(FRICTIONS))
-        c.integer("size", ge=1)
-        if self.friction == "polytopic" and self.size % 2 == 0:
+        c.auto_or_integer("size", ge=1, example=3)
+        if self.friction == "polytopic" and self.size != "auto" and self.size % 2 == 0:
             raise TorchfricError(
                 f'model.size = {self.size} is not allowed for model.friction = "polytopic": '
                 f"it needs an odd number of local models (1, 3, 5, ...); use {self.size - 1} or "
@@ -195,6 +216,47 @@ class ModelConfig(TableSection):
         c.number("velocity_scale", gt=0.0, optional=True, example=10.0)
         c.number("torque_scale", gt=0.0, optional=True, example=1.0)
         c.string("init")
+        _check_sizes(c, self)
+        c.string("dynamic", choices=DYNAMICS)
+        c.number("sigma0", gt=0.0)
+        c.number("sigma1", gt=0.0, optional=True, example=10.0)
+
+
+def _check_sizes(c: Check, m: ModelConfig) -> None:
+    """``model.sizes``: integers >= 1 (odd for polytopic), only with ``model.size = "auto"``,
+    which needs a friction with a size and a start of its own (not a checkpoint)."""
+    sizes = m.sizes
+    if not isinstance(sizes, list | tuple) or not all(
+        isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes
+    ):
+        c.type_error("sizes", sizes, "an array of integers >= 1", [1, 2, 3, 4])
+    c.set("sizes", tuple(sorted(set(sizes))))
+    if m.size != "auto":
+        if sizes:
+            raise TorchfricError(
+                f'model.sizes = {show(list(sizes))} lists the sizes that model.size = "auto" '
+                f'tries, but model.size = {show(m.size)}; set model.size = "auto", or remove '
+                "model.sizes"
+            )
+        return
+    if m.friction not in AUTO_SIZES:
+        raise TorchfricError(
+            f'model.size = "auto" chooses the size of a tanh or polytopic friction, but '
+            f'model.friction = "{m.friction}" has no size; give model.size an integer (it is '
+            "ignored) or choose a sized friction"
+        )
+    even = [s for s in m.sizes if s % 2 == 0]
+    if m.friction == "polytopic" and even:
+        raise TorchfricError(
+            f"model.sizes = {show(list(m.sizes))} holds even sizes ({show(even)}); "
+            '"polytopic" needs an odd number of local models: use e.g. [3, 5, 7, 9]'
+        )
+    if m.init not in INIT_KEYWORDS:
+        raise TorchfricError(
+            f'model.size = "auto" builds each size from model.init = "prefit" or "config", but '
+            f"model.init is a checkpoint ({m.init}) of one size; give model.size that "
+            'checkpoint\'s size, or set model.init = "prefit"'
+        )
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,302 @@
+"""The friction model's size from data: every candidate size identified, one criterion picks.
+
+`compare_sizes` takes one starting model per size (say tanh(1) … tanh(7), each from its own
+pre-fit) and runs the iterative EKF on each, under every tuning of the ensemble (`EnsembleSpec`;
+one filter under the base tuning without one), with the pass rules of `torchfric.estimators.
+passes`. Then it scores each size by the Bayesian information criterion of the filter's one-step
+innovations on the identification data:
+
+    BIC = −2 ℓ̂ + k ln N
+
+- ℓ̂ is the innovation log-likelihood of one more filter pass with θ held fixed at a member's
+  identified value (``P_θθ = 0``, so θ does not move while it is scored), maximised over a
+  common scale λ of the filter's noise model (P0_xx, Q and R all multiplied by λ: the gains and
+  innovations stay the same and every innovation covariance S becomes λ S, so the maximum has a
+  closed form, `concentrated_loglik`). The best member of the size gives the size's ℓ̂.
+- k is the number of estimated parameters (``ArmModel.num_parameters``), N the number of
+  samples filtered per pass.
+
+Holding θ fixed makes ℓ̂ the likelihood of one model, not of a filter still adapting θ in the
+pass it is scored on; concentrating λ out makes it independent of how well the assumed noise
+variances match the data's (a tuning off by ×10 would otherwise weigh the fit ten times more or
+less against the penalty). The size with the lowest BIC is chosen.
+
+Sizes that nest run as one batch: a tanh(j) network is a tanh(n) network (n > j) whose extra
+neurons have ``W1 = W2 = 0``, and with zero initial variance on those entries (``P_θθ`` rows and
+columns zero, Q_θ zero) the filter never moves them: their rows of P stay zero through the
+prediction (θ's dynamics are the identity) and the update (their gain rows are ``P Hᵀ S⁻¹ = 0``).
+Every tanh size's members are therefore members of one tanh(n) ensemble, filtered in one
+batch, with the results of the sizes run alone (same arithmetic, same pass rules). Other kinds
+(polytopic local models come with their own centres and widths) run one size after another.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ..data import Experiment
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from .ensemble import _filter_members, make_masked_step, member_grid
+from .observers import Callback
+from .passes import (
+    DIVERGED,
+    Filtering,
+    PassLedger,
+    experiment_list,
+    measured_data,
+    run_passes,
+)
+from .settings import EKFTuning, EnsembleSpec
+
+__all__ = [
+    "CRITERION",
+    "SizeScore",
+    "SizingResult",
+    "compare_sizes",
+    "concentrated_loglik",
+    "nests",
+]
+
+CRITERION = "bic_innovations"
+"""The name metrics and reports give the criterion: BIC on the fixed-θ one-step innovations."""
+
+
+@dataclass
+class SizeScore:
+    """One candidate size's result."""
+
+    size: int
+    parameters: int  # k: estimated θ entries of the model of this size
+    loglik: float  # ℓ̂: concentrated innovation log-likelihood of the size's best member
+    bic: float  # −2 ℓ̂ + k ln N (inf when every member of the size diverged)
+    member: int  # that member's index in the size's own grid (-1: none)
+    q_scale: float  # its tuning's Q and R factors
+    r_scale: float
+    passes: int  # passes it ran
+    members: int  # filters this size ran
+    diverged: int  # of which diverged
+    chosen: bool = False
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class SizingResult:
+    """What `compare_sizes` returns: one `SizeScore` per size (ascending) and the choice."""
+
+    scores: list[SizeScore]
+    chosen: int  # the size with the lowest BIC
+    samples: int  # N of the penalty k ln N
+    batched: bool  # the sizes ran as one batch (nested tanh sizes)
+    seconds: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """For metrics.json: the criterion, the choice and the table of sizes."""
+        return {
+            "criterion": CRITERION,
+            "chosen": self.chosen,
+            "samples": self.samples,
+            "batched": self.batched,
+            "seconds": self.seconds,
+            "table": [s.to_dict() for s in self.scores],
+        }
+
+
+def concentrated_loglik(loglik: Tensor, sum_nis: Tensor, samples: int, channels: int) -> Tensor:
+    """The innovation log-likelihood maximised over a common scale λ of the noise model.
+
+    A pass gives ``loglik = −½ Σ (eᵀS⁻¹e + ln det S + m ln 2π)`` and ``sum_nis = Σ eᵀS⁻¹e``
+    over `samples` samples of `channels` (m) channels. With every S scaled by λ the maximum is
+    at ``λ̂ = sum_nis / (m N)``, where the log-likelihood is
+    ``loglik + ½ sum_nis − ½ m N (1 + ln λ̂)``."""
+    mn = float(samples * channels)
+    scale = sum_nis / mn
+    return loglik + 0.5 * sum_nis - 0.5 * mn * (1.0 + torch.log(scale))
+
+
+def nests(starts: Mapping[int, ArmModel]) -> bool:
+    """True when the sizes nest by zero padding (tanh networks of the same arm): then they run
+    as one batch of the largest."""
+    models = list(starts.values())
+    if not all(m.friction.kind == "tanh" for m in models):
+        return False
+    big = set(starts[max(starts)].theta_names)
+    return all(set(m.theta_names) <= big for m in models)
+
+
+def compare_sizes(
+    starts: Mapping[int, ArmModel],
+    experiments: Experiment | Sequence[Experiment],
+    tuning: EKFTuning | None = None,
+    spec: EnsembleSpec | None = None,
+    *,
+    callback: Callback | None = None,
+    progress_every: int = 2000,
+) -> SizingResult:
+    """Identify each size's model from its start and choose the size by BIC (module docstring).
+
+    Args:
+        starts: size → the starting model of that size (its θ is the start of the size's
+            filters). Every model must have the same arm terms.
+        experiments: the identification data.
+        tuning: the base `EKFTuning` (the run's).
+        spec: the ensemble's grid (each size runs every start and tuning of it); None: one
+            filter per size under `tuning`.
+        callback: `Callback.on_progress` inside each pass.
+
+    Raises:
+        TorchfricError: no sizes, or every filter of every size diverged.
+    """
+    t0 = time.perf_counter()
+    if not starts:
+        raise TorchfricError("compare_sizes needs at least one size")
+    tuning = tuning or EKFTuning()
+    sizes = sorted(starts)
+    largest = starts[sizes[-1]]
+    exps = experiment_list(experiments, tuning, largest.num_parameters, "compare_sizes")
+    callback = callback or Callback()
+    batched = len(sizes) > 1 and nests(starts)
+    groups = [(largest, sizes)] if batched else [(starts[s], [s]) for s in sizes]
+    samples = sum(e.n for e in exps)
+    scores: list[SizeScore] = []
+    for model, group in groups:
+        members = _members(model, {s: starts[s] for s in group}, tuning, spec)
+        f = _filtering(model, exps, tuning, members, callback, progress_every)
+        ledger = _train(model, tuning, members, f)
+        ll = _fixed_loglik(model, tuning, ledger, f)
+        scores += [_score(s, starts[s], members, ledger, ll, samples) for s in group]
+    best = min(scores, key=lambda s: (s.bic, s.size))
+    if not math.isfinite(best.bic):
+        raise TorchfricError(
+            f"every filter of every size ({', '.join(map(str, sizes))}) diverged; start from "
+            "model.init = 'prefit', lower estimator.p0_theta, or give model.sizes smaller sizes"
+        )
+    best.chosen = True
+    return SizingResult(scores, best.size, samples, batched, time.perf_counter() - t0)
+
+
+@dataclass
+class _Members:
+    """The filters of one batch: θ starts `(K, k)`, ``P_θθ`` `(K, k, k)`, Q and R factors
+    `(K,)`, each one's size `owner` and its index in that size's grid `index`."""
+
+    theta: Tensor
+    P_theta: Tensor
+    q_scale: Tensor
+    r_scale: Tensor
+    owner: list[int]
+    index: list[int]
+
+
+def _members(
+    model: ArmModel, starts: Mapping[int, ArmModel], tuning: EKFTuning, spec: EnsembleSpec | None
+) -> _Members:
+    """Every size's grid of filters in `model`'s coordinates: a smaller start's θ and ``P_θθ``
+    go to the entries of the same name, the others stay zero (neurons that never move)."""
+    f64 = torch.float64
+    names = model.theta_names
+    k = len(names)
+    thetas, Ps, qs, rs, owner, index = [], [], [], [], [], []
+    for size, start in starts.items():
+        theta0 = start.get_theta()
+        if spec is None:
+            grid = (theta0[None], torch.ones(1, dtype=f64), torch.ones(1, dtype=f64))
+        else:
+            grid = member_grid(start, theta0, spec)
+        idx = torch.tensor([names.index(n) for n in start.theta_names])
+        if not bool((model.log_mask()[idx] == start.log_mask()).all()):
+            raise TorchfricError(f"size {size}: its parameters are stored unlike the batch's")
+        G = grid[0].shape[0]
+        theta = torch.zeros(G, k, dtype=f64)
+        theta[:, idx] = grid[0]
+        P = torch.zeros(G, k, k, dtype=f64)
+        P[:, idx[:, None], idx[None, :]] = tuning.initial_P_theta(start, grid[0])
+        thetas.append(theta)
+        Ps.append(P)
+        qs.append(grid[1])
+        rs.append(grid[2])
+        owner += [size] * G
+        index += list(range(G))
+    cat = torch.cat
+    return _Members(cat(thetas), cat(Ps), cat(qs), cat(rs), owner, index)
+
+
+def _filtering(
+    model: ArmModel,
+    exps: list[Experiment],
+    tuning: EKFTuning,
+    members: _Members,
+    callback: Callback,
+    every: int,
+) -> Filtering:
+    """The batch's `Filtering`: each member's Q and R scaled, the masked batched step."""
+    Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
+    Qk = Q * members.q_scale[:, None, None]
+    Rk = R * members.r_scale[:, None, None]
+    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
+    data = measured_data(exps, tuning.measure)
+    total = sum(e.n for e in exps)
+    return Filtering(data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, every, total)
+
+
+def _train(model: ArmModel, tuning: EKFTuning, members: _Members, f: Filtering) -> PassLedger:
+    """The passes of every member (`run_passes`), from its start."""
+    ledger = PassLedger(model, tuning, members.theta.clone(), members.P_theta.clone())
+    run_passes(ledger, tuning.passes, lambda p: _filter_members(p, ledger, f), lambda p, r: None)
+    return ledger
+
+
+def _fixed_loglik(model: ArmModel, tuning: EKFTuning, ledger: PassLedger, f: Filtering) -> Tensor:
+    """`(K,)` each member's concentrated log-likelihood (`concentrated_loglik`) of one pass
+    with its kept θ held fixed; −inf for a member without a completed pass or whose pass
+    fails."""
+    K, k = ledger.theta.shape
+    s = f.P0_xx.shape[0]  # states before θ
+    Q = f.Q.clone()
+    Q[:, s:, s:] = 0.0  # no process noise on θ either: it stays where it is
+    zero = torch.zeros(K, k, k, dtype=torch.float64)
+    scoring = PassLedger(model, tuning, ledger.kept_theta(), zero)
+    sums = _filter_members(0, scoring, dataclasses.replace(f, Q=Q))
+    ll = concentrated_loglik(sums.loglik, sums.sum_nis, sums.samples, f.H.shape[0])
+    usable = torch.tensor(
+        [bool(h) and not fail for h, fail in zip(ledger.histories, sums.failures, strict=True)]
+    )
+    return torch.where(usable & torch.isfinite(ll), ll, -math.inf)
+
+
+def _score(
+    size: int,
+    start: ArmModel,
+    members: _Members,
+    ledger: PassLedger,
+    ll: Tensor,
+    samples: int,
+) -> SizeScore:
+    """The `SizeScore` of `size` from its members' log-likelihoods `ll`."""
+    rows = [i for i, s in enumerate(members.owner) if s == size]
+    best = max(rows, key=lambda i: float(ll[i]))
+    k = start.num_parameters
+    loglik = float(ll[best])
+    found = math.isfinite(loglik)
+    return SizeScore(
+        size=size,
+        parameters=k,
+        loglik=loglik,
+        bic=-2.0 * loglik + k * math.log(samples) if found else math.inf,
+        member=members.index[best] if found else -1,
+        q_scale=float(members.q_scale[best]),
+        r_scale=float(members.r_scale[best]),
+        passes=len(ledger.histories[best]),
+        members=len(rows),
+        diverged=sum(ledger.status[i] == DIVERGED for i in rows),
+    )
