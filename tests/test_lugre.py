@@ -106,7 +106,7 @@ def test_steady_sliding_is_a_fixed_point_of_the_step():
     fric, arm = model.split(theta)
     for v in (0.3, 2.0, -7.0):
         vt = torch.tensor(v, dtype=F64)
-        z = sliding_curve(model.friction, vt, fric) / arm["sigma0"]
+        z = sliding_curve(model.friction, vt, fric) / arm["lugre_sigma0"]
         total = float(model.friction_torque(vt, theta))
         u = torch.tensor(total / float(arm["c_m"]), dtype=F64)  # balances the steady friction
         x = torch.stack([torch.tensor(0.0, dtype=F64), vt, z])

@@ -37,7 +37,14 @@ from torch import Tensor, nn
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes
 from ..models.arm import ArmModel, arm_field, arm_friction
-from ..models.lugre import V_FLOOR, bristle_field, bristle_solve, external_torque, positive_secant
+from ..models.lugre import (
+    LUGRE_NAMES,
+    V_FLOOR,
+    bristle_field,
+    bristle_solve,
+    external_torque,
+    positive_secant,
+)
 from ..models.simulate import SOLVERS, bristle_stiffness, friction_stiffness
 
 __all__ = ["ExportedArm", "export_model", "save_exported"]
@@ -143,12 +150,12 @@ class ExportedArm(nn.Module):
         self.register_buffer("c_m", arm["c_m"].detach().clone().reshape(()))
         self.register_buffer("inertia", arm["inertia"].detach().clone().reshape(()))
         # Terms the model lacks stay None, exactly as in ArmModel.dynamics.
-        for name in ("viscous", "offset", "gravity", "asymmetric", "sigma0", "sigma1"):
+        for name in ("viscous", "offset", "gravity", "asymmetric", *LUGRE_NAMES):
             value = arm.get(name)
             self.register_buffer(name, None if value is None else value.detach().clone())
         zero = torch.zeros((), dtype=torch.float64)
-        self.s0 = zero if self.sigma0 is None else self.sigma0.reshape(())
-        self.s1 = zero if self.sigma1 is None else self.sigma1.reshape(())
+        self.s0 = zero if self.lugre_sigma0 is None else self.lugre_sigma0.reshape(())
+        self.s1 = zero if self.lugre_sigma1 is None else self.lugre_sigma1.reshape(())
 
     def curve_of(self, v: Tensor) -> Tensor:
         """C(v) of the friction module alone, any shape."""

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from ..errors import TorchfricError
 from .friction import Friction, make_friction
-from .lugre import DYNAMICS, lugre_field, lugre_substep, sliding_curve
+from .lugre import DYNAMICS, LUGRE_NAMES, lugre_field, lugre_substep, sliding_curve
 
 __all__ = ["ArmModel", "arm_field", "arm_friction"]
 
@@ -111,7 +111,8 @@ class ArmModel(nn.Module):
         log_positive: store M, b, g_c, c_m as logarithms in θ so estimators cannot make them negative.
         dynamic: "none" (static friction, state [q, q̇]) or "lugre": a bristle state z
             (`torchfric.models.lugre`), state [q, q̇, z], whose sliding curve is the friction
-            module's; σ0 [N m/rad] and σ1 [N m s/rad] (`sigma0`, `sigma1`, > 0) join θ.
+            module's; σ0 [N m/rad] and σ1 [N m s/rad] (`sigma0`, `sigma1`, > 0) join θ
+            as ``lugre_sigma0``, ``lugre_sigma1`` (a polytopic curve has a ``sigma1`` of its own).
 
     θ order: friction parameters (the friction's own order), then b, M, offset, gravity,
     asymmetric, c_m, σ0, σ1 (each only when enabled) —
@@ -162,8 +163,8 @@ class ArmModel(nn.Module):
             self._check_value("c_m", c_m, positive=True)
             self.register_buffer("c_m_fixed", torch.tensor(float(c_m), dtype=torch.float64))
         if dynamic == "lugre":
-            self._add("sigma0", sigma0, positive=True)
-            self._add("sigma1", sigma1, positive=True)
+            self._add("lugre_sigma0", sigma0, positive=True)
+            self._add("lugre_sigma1", sigma1, positive=True)
         self._k_friction = friction.num_parameters
 
     # -- construction helpers ----------------------------------------------------------------
@@ -373,7 +374,7 @@ class ArmModel(nn.Module):
         this θ without σ0 and σ1 (they come last)."""
         spec = self.spec()
         spec.pop("dynamic", None)
-        spec["arm"] = {k: v for k, v in spec["arm"].items() if k not in ("sigma0", "sigma1")}
+        spec["arm"] = {k: v for k, v in spec["arm"].items() if k not in LUGRE_NAMES}
         return ArmModel.from_spec(spec).set_theta(self.get_theta()[: self._static_size])
 
     def with_static(self, static: ArmModel) -> ArmModel:
@@ -423,7 +424,7 @@ class ArmModel(nn.Module):
         arm = {
             k: (
                 max(v, _TINY)
-                if k in ("inertia", "viscous", "gravity", "c_m", "sigma0", "sigma1")
+                if k in ("inertia", "viscous", "gravity", "c_m", *LUGRE_NAMES)
                 and spec["log_positive"]
                 else v
             )
@@ -440,7 +441,7 @@ class ArmModel(nn.Module):
             log_positive=spec["log_positive"],
             asymmetric=arm.get("asymmetric"),
             **(
-                {"dynamic": "lugre", "sigma0": arm["sigma0"], "sigma1": arm["sigma1"]}
+                {"dynamic": "lugre", "sigma0": arm[LUGRE_NAMES[0]], "sigma1": arm[LUGRE_NAMES[1]]}
                 if spec.get("dynamic", "none") == "lugre"
                 else {}
             ),

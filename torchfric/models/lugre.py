@@ -32,6 +32,7 @@ from .friction import Friction
 
 __all__ = [
     "DYNAMICS",
+    "LUGRE_NAMES",
     "SECANT_FLOOR",
     "V_FLOOR",
     "bristle_field",
@@ -43,6 +44,9 @@ __all__ = [
     "lugre_field",
     "lugre_substep",
 ]
+
+# θ's names of σ0 and σ1 (the polytopic curve's own variances are sigma1, sigma2, ...).
+LUGRE_NAMES: tuple[str, str] = ("lugre_sigma0", "lugre_sigma1")
 
 # `model.dynamic` values: "none" (the static arm, state [q, q̇]) and "lugre" ([q, q̇, z]).
 DYNAMICS: tuple[str, ...] = ("none", "lugre")
@@ -171,7 +175,9 @@ def lugre_field(
     reference and tests, integrate it with `lugre_substep`)."""
     f = _external(x, u, arm)
     r = secant(friction, x[..., 1], fric)
-    return bristle_field(x, f, r, arm["sigma0"], arm["sigma1"], arm["inertia"], arm.get("viscous"))
+    return bristle_field(
+        x, f, r, arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
+    )
 
 
 def _external(x: Tensor, u: Tensor, arm: dict[str, Tensor]) -> Tensor:
@@ -195,7 +201,7 @@ def lugre_substep(
     v = x[..., 1]
     f = _external(x, u, arm)
     h = torch.as_tensor(h, dtype=x.dtype)
-    s0, s1, M, b = arm["sigma0"], arm["sigma1"], arm["inertia"], arm.get("viscous")
+    s0, s1, M, b = arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
     v_pred, _ = bristle_solve(x, f, s0 / secant(friction, v, fric), h, s0, s1, M, b)
     mid = 0.5 * (v + v_pred)
     v1, z1 = bristle_solve(x, f, s0 / secant(friction, mid, fric), h, s0, s1, M, b)

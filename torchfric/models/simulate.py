@@ -188,7 +188,7 @@ def bristle_stiffness(model: ArmModel, theta: Tensor) -> float:
     """A dynamic model's sub-steps per second of `auto_substeps`, ``ω / 0.1`` with
     ``ω = sqrt(σ0/M)`` its bristle resonance; a one-line error when it is not finite."""
     arm = model.split(theta)[1]
-    rate = float(torch.sqrt(arm["sigma0"] / arm["inertia"])) / _BRISTLE_OMEGA_H
+    rate = float(torch.sqrt(arm["lugre_sigma0"] / arm["inertia"])) / _BRISTLE_OMEGA_H
     if not math.isfinite(rate):
         raise TorchfricError(
             "the model's bristle stiffness is not finite; check the parameters (NaN or inf in θ)"
@@ -289,7 +289,7 @@ def full_state(model: ArmModel, x0: Tensor, theta: Tensor) -> Tensor:
         return x0
     fric, arm = model.split(theta)
     v = x0[..., 1]
-    z = model.black_box(v, fric) / arm["sigma0"]
+    z = model.black_box(v, fric) / arm["lugre_sigma0"]
     return torch.cat([x0, z.unsqueeze(-1)], dim=-1)
 
 
