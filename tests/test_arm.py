@@ -355,18 +355,23 @@ def _polytopic_derivatives(arm: ArmModel, v: float) -> tuple[float, float, np.nd
     offsets = np.concatenate([[0.0], b, -b])
     var = np.concatenate([s[:1], s[1:], s[1:]])
     d = v - centres
-    ell = -0.5 * d**2 / var  # log ρ_i
+    # The distance inside log ρ_i: d itself, except for the outer pair of the affine
+    # continuation, whose validity is flat beyond its centre (min(d, 0) and max(d, 0)).
+    e = d.copy()
+    if f.extrapolation == "affine" and m > 0:
+        e[m], e[2 * m] = min(d[m], 0.0), max(d[2 * m], 0.0)
+    ell = -0.5 * e**2 / var  # log ρ_i
     w = np.exp(ell - ell.max())
     w /= w.sum()
     g = slopes * d + offsets  # local affine models
     cv = float(w @ g)
     # ∂w_i/∂ℓ_j = w_i (δ_ij − w_j)  ⇒  ∂C/∂ℓ_i = w_i (g_i − C).
     dc_dell = w * (g - cv)
-    dcdv = float(w @ slopes + dc_dell @ (-d / var))  # ∂ℓ_i/∂v = −d_i/σ_i
+    dcdv = float(w @ slopes + dc_dell @ (-e / var))  # ∂ℓ_i/∂v = −e_i/σ_i
     d_slope = w * d
     d_offset = w
-    d_centre = -w * slopes + dc_dell * d / var  # ∂d_i/∂c_i = −1
-    d_var = dc_dell * 0.5 * d**2 / var**2
+    d_centre = -w * slopes + dc_dell * e / var  # ∂d_i/∂c_i = −1
+    d_var = dc_dell * 0.5 * e**2 / var**2
     pos, neg = slice(1, m + 1), slice(m + 1, None)
     grads = np.concatenate(
         [

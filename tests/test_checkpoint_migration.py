@@ -238,3 +238,28 @@ def test_shipped_checkpoint_loads_simulates_scores_and_exports(
     for i, out in enumerate((q, qd)):
         scale = float(ref[:, i].abs().max())
         assert float((out - ref[:, i]).abs().max()) <= RTOL * scale, (path.name, i)
+
+
+def test_format_1_polytopic_keeps_its_gaussian_construction(tmp_path: pathlib.Path) -> None:
+    """A polytopic checkpoint of format 1 was trained with the paper's Gaussian validity
+    functions: it loads with them (its curve beyond the centres unchanged), not with the affine
+    continuation that format 2 models use by default."""
+    from torchfric.models.friction import PolytopicFriction
+
+    fr = PolytopicFriction(3, a=[0.01, 0.02], b=[0.2], c=[2.0], sigma=[4.0, 0.5])
+    model = ArmModel(fr, inertia=0.03, viscous=None, c_m=16.0)
+    p = build_checkpoint(model, config=Config(), estimator_state={}, metrics={"dt": 1e-3},
+                         data_fingerprints={}, name="old", complete=True)  # fmt: skip
+    assert p["model"]["friction"]["kwargs"]["extrapolation"] == "affine"
+    p["format_version"] = 1
+    del p["model"]["friction"]["kwargs"]["extrapolation"]
+    path = tmp_path / "v1.pt"
+    save_checkpoint(path, p)
+    old = load_checkpoint(path)
+    assert old.friction.init_kwargs()["extrapolation"] == "gaussian"
+    v = torch.linspace(-30.0, 30.0, 61, dtype=torch.float64)
+    gauss = PolytopicFriction(3, a=[0.01, 0.02], b=[0.2], c=[2.0], sigma=[4.0, 0.5],
+                              extrapolation="gaussian")  # fmt: skip
+    with torch.no_grad():
+        torch.testing.assert_close(old.friction(v), gauss(v), rtol=1e-14, atol=1e-15)
+        assert not torch.allclose(model.friction(v), gauss(v))  # the constructions differ

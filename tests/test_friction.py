@@ -181,7 +181,9 @@ def test_polytopic_matches_paper_formula(n: int) -> None:
     rng = np.random.default_rng(n)
     a, b = rng.normal(size=m + 1), rng.normal(size=m)
     c, sigma = rng.uniform(0.2, 2.0, size=m), rng.uniform(0.1, 1.5, size=m + 1)
-    f = PolytopicFriction(n, a=a.tolist(), b=b.tolist(), c=c.tolist(), sigma=sigma.tolist())
+    f = PolytopicFriction(
+        n, a=a.tolist(), b=b.tolist(), c=c.tolist(), sigma=sigma.tolist(), extrapolation="gaussian"
+    )
     v = np.linspace(-4.0, 4.0, 81)
     got = f(torch.tensor(v)).detach()
     torch.testing.assert_close(got, torch.tensor(_np_polytopic(v, a, b, c, sigma)))

@@ -59,11 +59,26 @@ __all__ = [
 ]
 
 FORMAT = "torchfric-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Bump when the layout changes incompatibly; readers refuse newer versions and migrate older
-ones through `_FORMAT_MIGRATIONS`."""
+ones through `_FORMAT_MIGRATIONS`. 2: a polytopic friction's spec names its construction
+beyond the outermost centres (``extrapolation``, issue 23); format 1 had only the Gaussian one."""
 
-_FORMAT_MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+
+def _pin_gaussian_polytopic(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """Format 1 → 2: a polytopic model of format 1 was trained with (and must keep) the
+    paper's Gaussian validity functions, not the affine continuation that is now the default."""
+    model = dict(ckpt["model"])
+    friction = dict(model["friction"])
+    if friction["kind"] == "polytopic":
+        friction["kwargs"] = {"extrapolation": "gaussian", **friction.get("kwargs", {})}
+    model["friction"] = friction
+    return {**ckpt, "model": model}
+
+
+_FORMAT_MIGRATIONS: dict[int, Callable[[dict[str, Any]], dict[str, Any]]] = {
+    1: _pin_gaussian_polytopic,
+}
 """Format ``v`` → a function that turns a format-``v`` checkpoint dict into format ``v + 1``
 (it sets ``format_version``). When FORMAT_VERSION is bumped, add the previous version here so
 that existing checkpoints keep loading; a version without a path to FORMAT_VERSION is refused."""

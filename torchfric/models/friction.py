@@ -10,7 +10,7 @@ Models (registry name in brackets, as used by `model.friction` in a config):
 
 - `OddTanhFriction` ("tanh"): ``C(v) = W2ᵀ tanh(W1 v)``, no biases (Hensen et al. §3.1).
 - `PolytopicFriction` ("polytopic"): Gaussian-weighted local affine models with the mirrored-pair
-  construction of §3.2.
+  construction of §3.2; beyond the outermost centres the outer pair continues as straight lines.
 - `CoulombFriction` ("coulomb"): ``C(v) = Fc tanh(v/ε)``; with the arm's viscous ``b`` this is
   the Coulomb+viscous white-box baseline.
 - `StribeckFriction` ("stribeck"): ``C(v) = (Fc + (Fs − Fc) exp(−(v/vs)²)) tanh(v/ε)``.
@@ -37,6 +37,9 @@ __all__ = [
     "FRICTIONS",
     "make_friction",
 ]
+
+_EXTRAPOLATIONS: tuple[str, ...] = ("affine", "gaussian")
+"""`PolytopicFriction`'s validity constructions beyond the outer centres (see its docstring)."""
 
 
 def _as_vector(value: Sequence[float] | Tensor | float, n: int, name: str) -> Tensor:
@@ -199,12 +202,27 @@ class PolytopicFriction(Friction):
     ``n − 1`` come in mirrored pairs ``(c, −c)`` sharing variance σ and slope a, with offsets
     ``(b, −b)``. For n = 3 the parameters are exactly a1, a2, b2, c2, σ1, σ2.
 
+    Extrapolation: with the paper's Gaussians (``extrapolation="gaussian"``) the local model
+    with the widest σ takes every velocity far from all centres, whatever its slope, so the
+    curve can run away just beyond the data. The default ``extrapolation="affine"`` makes the
+    validity of the outermost pair one-sided: ``log ρ = −½ min(v − c_m, 0)² / σ_m`` for the
+    model at ``+c_m`` (weight 1 everywhere beyond its centre) and the mirror image
+    ``−½ max(v + c_m, 0)² / σ_m`` for the one at ``−c_m``. Every other validity still decays
+    like a Gaussian, so beyond the outer centres the normalised weight of the outer model tends
+    to 1 and ``C(v) → a_m (v − c_m) + b_m`` (its mirror for v → −∞) for every σ: the outer
+    local models continue the curve as straight lines, exactly (to rounding) from a few of the
+    widest other model's standard deviations past the outermost centre on. Below the outer
+    centres the curve is the paper's. ``n = 1`` (the centre model alone) is ``a1 v`` either way.
+    The construction is C¹ (the one-sided validity has a continuous slope at its centre).
+
     Args:
         n: odd number of local models (>= 1).
         a: slopes `(m+1,)` (centre first), b: offsets `(m,)`, c: centres `(m,)`,
             sigma: variances `(m+1,)`, with m = (n−1)/2. Defaults place the pair centres evenly
             over `(0, velocity_scale]`, variances so that neighbours overlap, offsets at
             `torque_scale`.
+        extrapolation: ``"affine"`` (default: the outer pair holds beyond the outer centres) or
+            ``"gaussian"`` (the paper's validity functions, unchanged).
     """
 
     kind = "polytopic"
@@ -220,6 +238,7 @@ class PolytopicFriction(Friction):
         velocity_scale: float = 1.0,
         torque_scale: float = 0.1,
         log_positive: bool = True,
+        extrapolation: str = "affine",
     ) -> None:
         super().__init__(log_positive=log_positive)
         if not isinstance(n, int) or isinstance(n, bool) or n < 1 or n % 2 == 0:
@@ -227,6 +246,12 @@ class PolytopicFriction(Friction):
                 f"PolytopicFriction needs an odd number of local models n >= 1 (1, 3, 5, ...), "
                 f"got {n!r}"
             )
+        if extrapolation not in _EXTRAPOLATIONS:
+            raise TorchfricError(
+                f"PolytopicFriction extrapolation must be one of "
+                f"{', '.join(map(repr, _EXTRAPOLATIONS))}, got {extrapolation!r}"
+            )
+        self.extrapolation = extrapolation
         self.n = n
         m = (n - 1) // 2
         self.m = m
@@ -256,6 +281,9 @@ class PolytopicFriction(Friction):
     def size(self) -> int:
         return self.n
 
+    def init_kwargs(self) -> dict[str, Any]:
+        return {**super().init_kwargs(), "extrapolation": self.extrapolation}
+
     def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         a, b, c, s = p["a"], p["b"], p["c"], p["sigma"]
         zero = torch.zeros_like(a[..., :1])
@@ -271,7 +299,14 @@ class PolytopicFriction(Friction):
         # operations (the pre-fit's batched Jacobian spent 60 % of its time there), and the sum
         # adds each mirrored pair first, so that w(−v) is w(v) mirrored to the last bit.
         m = self.m
-        logs = (-0.5 * d * d / variances).unbind(-1)
+        logs = list((-0.5 * d * d / variances).unbind(-1))
+        if self.extrapolation == "affine" and m > 0:
+            # The outer pair's validity is flat beyond its centre (log ρ = 0 there), so that
+            # pair takes over far out. The −c_m side is the +c_m side mirrored bit for bit:
+            # at −v its distance is −(v − c_m) exactly, and clamp_min(−x, 0) = −clamp_max(x, 0).
+            outer, mirror = d[..., m].clamp_max(0.0), d[..., 2 * m].clamp_min(0.0)
+            logs[m] = -0.5 * outer * outer / s[..., m]
+            logs[2 * m] = -0.5 * mirror * mirror / s[..., m]
         top = functools.reduce(torch.maximum, logs)
         rho = [torch.exp(z - top) for z in logs]
         total = rho[0]
