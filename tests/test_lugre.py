@@ -18,17 +18,18 @@ from torchfric.data.rig import RigParameters, excitation, simulate_rig
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import make_propagator
 from torchfric.models import ArmModel, make_friction, simulate
-from torchfric.models.lugre import bristle_solve, secant, sliding_curve
+from torchfric.models.lugre import bristle_solve, sliding_curve, sliding_level
 
 F64 = torch.float64
 
 
 def true_model(p: RigParameters) -> ArmModel:
     """The rig's own system as a torchfric model: LuGre around its Stribeck curve (the
-    Stribeck module's tanh(v/ε) with ε = 1e-7 is sign(v) for every velocity the rig reaches)."""
-    fr = make_friction("stribeck", 1, fc=p.Fc, fs=p.Fs, vs=p.vs, eps=1e-7)
+    Stribeck module's tanh(v/ε) with ε = 1e-8 is 1 from the stick velocity 1e-6 on, so g is
+    the rig's g to rounding)."""
+    fr = make_friction("stribeck", 1, fc=p.Fc, fs=p.Fs, vs=p.vs, eps=1e-8)
     return ArmModel(fr, inertia=p.inertia, viscous=p.sigma2, c_m=p.c_m, dynamic="lugre",
-                    sigma0=p.sigma0, sigma1=p.sigma1)  # fmt: skip
+                    sigma0=p.sigma0, sigma1=p.sigma1, stick_velocity=1e-6)  # fmt: skip
 
 
 def random_tanh(seed: int, size: int = 4) -> ArmModel:
@@ -37,7 +38,8 @@ def random_tanh(seed: int, size: int = 4) -> ArmModel:
     w2 = torch.randn(size, generator=g, dtype=F64) * 0.3
     fr = make_friction("tanh", size, w1=w1, w2=w2)
     return ArmModel(fr, inertia=0.03, viscous=0.01, c_m=2.0, dynamic="lugre",
-                    sigma0=float(10 ** (2 + 3 * torch.rand(1, generator=g))), sigma1=3.0)  # fmt: skip
+                    sigma0=float(10 ** (2 + 3 * torch.rand(1, generator=g))), sigma1=3.0,
+                    stick_velocity=float(10 ** (-3 + 2 * torch.rand(1, generator=g))))  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -82,22 +84,45 @@ def test_auto_substeps_stay_close_to_the_rig(rig_run):
 @pytest.mark.parametrize("seed", range(6))
 def test_sliding_curve_positive_and_odd_for_random_parameters(seed):
     model = random_tanh(seed)
-    fric, _ = model.split(model.get_theta())
+    fric, arm = model.split(model.get_theta())
+    vs = arm["lugre_vstick"]
     v = torch.cat([torch.zeros(1, dtype=F64), torch.logspace(-9, 3, 400, dtype=F64)])
-    r = secant(model.friction, v, fric)
-    assert bool((r > 0).all()) and bool(torch.isfinite(r).all())
-    assert torch.equal(r, secant(model.friction, -v, fric))  # even
-    s = sliding_curve(model.friction, v, fric)
-    assert torch.equal(s, -sliding_curve(model.friction, -v, fric))  # odd
+    g = sliding_level(model.friction, v, fric, vs)
+    assert bool((g > 0).all()) and bool(torch.isfinite(g).all())
+    assert torch.equal(g, sliding_level(model.friction, -v, fric, vs))  # even
+    s = sliding_curve(model.friction, v, fric, vs)
+    assert torch.equal(s, -sliding_curve(model.friction, -v, fric, vs))  # odd
     assert float(s[0]) == 0.0
-    # g(v) = |v| r⁺(v) = |C(v)| for v > 0: the steady state is C(v) where C has v's sign, its
-    # mirror where a random C has not (the secant read at |v| >= 1e-6; ε = 1e-9 shifts it by
-    # (ε/r)²/2 <= 5e-11 for secants |r| > 1e-4)
+    # the steady state is |C(v)| for v >= v_s (C where C has v's sign, its mirror where a random
+    # C has not; ε = 1e-9 shifts it by ε²/2|C| < 1e-14 where |C| > 1e-4), held at |C(v_s)| below
     c = model.friction.evaluate(v, fric)
-    check = (v >= 1e-6) & (c.abs() / v > 1e-4)
-    assert int(check.sum()) > 50
-    torch.testing.assert_close(s[check], c[check].abs(), rtol=1e-10, atol=0.0)
-    assert bool((s[v > 0] > 0).all())
+    above = (v >= vs) & (c.abs() > 1e-4)
+    assert int(above.sum()) > 50
+    torch.testing.assert_close(s[above], c[above].abs(), rtol=1e-12, atol=0.0)
+    below = (v > 0) & (v < vs)
+    c_vs = model.friction.evaluate(vs.reshape(1), fric).abs()
+    torch.testing.assert_close(s[below], c_vs.expand(int(below.sum())), rtol=1e-12, atol=1e-15)
+    # the bristles stop relaxing at rest, σ0 |v| / g(v) -> 0 linearly (the condition for
+    # sticking): below v_s the rate over |v| is the constant σ0 / g(0)
+    rate = arm["lugre_sigma0"] * v / g
+    assert float(rate[0]) == 0.0
+    slope = (arm["lugre_sigma0"] / g[0]).expand(int(below.sum()))
+    torch.testing.assert_close(rate[below] / v[below], slope, rtol=1e-12, atol=0.0)
+
+
+def test_the_model_sticks_below_breakaway():
+    """Under a slow torque below its static friction (0.9 Fs, 0.5 Hz) the LuGre model follows
+    the rig's pre-sliding loop (2.3 bristle ranges Fs/σ0 at most, back to 0.03 of one after a
+    period) to 1e-7 rad: it sticks. Read at |q̇| alone, g(0) = 0 would let it creep 11 mrad."""
+    p = dataclasses.replace(RigParameters(), disturbance_std=0.0)
+    t = torch.arange(2000, dtype=F64) * 1e-3
+    u = 0.9 * p.Fs / p.c_m * torch.sin(2 * math.pi * 0.5 * t)
+    with torch.no_grad():
+        x = simulate(true_model(p), t, u, torch.zeros(2, dtype=F64), engine="compiled")
+    rig = torch.tensor(simulate_rig(p, u.numpy(), seed=0)["q_true"])
+    assert float((x[:, 0] - rig).abs().max()) < 2e-7
+    assert float(x[:, 0].abs().max()) < 3 * p.Fs / p.sigma0
+    assert abs(float(x[-1, 0])) < 0.1 * p.Fs / p.sigma0
 
 
 def test_steady_sliding_is_a_fixed_point_of_the_step():
@@ -106,7 +131,7 @@ def test_steady_sliding_is_a_fixed_point_of_the_step():
     fric, arm = model.split(theta)
     for v in (0.3, 2.0, -7.0):
         vt = torch.tensor(v, dtype=F64)
-        z = sliding_curve(model.friction, vt, fric) / arm["lugre_sigma0"]
+        z = sliding_curve(model.friction, vt, fric, arm["lugre_vstick"]) / arm["lugre_sigma0"]
         total = float(model.friction_torque(vt, theta))
         u = torch.tensor(total / float(arm["c_m"]), dtype=F64)  # balances the steady friction
         x = torch.stack([torch.tensor(0.0, dtype=F64), vt, z])
@@ -187,7 +212,7 @@ def test_spec_round_trip_and_static_twin():
     torch.testing.assert_close(again.get_theta(), model.get_theta(), rtol=1e-15, atol=0)
     static = model.static_twin()
     assert static.state_size == 2 and "dynamic" not in static.spec()
-    assert static.theta_names == model.theta_names[:-2]
+    assert static.theta_names == model.theta_names[:-3]
     back = model.with_static(static)
     torch.testing.assert_close(back.get_theta(), model.get_theta(), rtol=0, atol=0)
 

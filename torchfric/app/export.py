@@ -39,11 +39,10 @@ from ..files import atomic_write_bytes
 from ..models.arm import ArmModel, arm_field, arm_friction
 from ..models.lugre import (
     LUGRE_NAMES,
-    V_FLOOR,
     bristle_field,
     bristle_solve,
     external_torque,
-    positive_secant,
+    positive_level,
 )
 from ..models.simulate import SOLVERS, bristle_stiffness, friction_stiffness
 
@@ -143,7 +142,6 @@ class ExportedArm(nn.Module):
         )
         if self.dynamic:
             self.stability = 1.0
-        self.v_floor = V_FLOOR
         self.nominal_dt = 0.0 if dt is None else float(dt)
         self.parameters_by_name = model.physical_parameters()
         self.curve = _trace_curve(model, fric)
@@ -156,20 +154,24 @@ class ExportedArm(nn.Module):
         zero = torch.zeros((), dtype=torch.float64)
         self.s0 = zero if self.lugre_sigma0 is None else self.lugre_sigma0.reshape(())
         self.s1 = zero if self.lugre_sigma1 is None else self.lugre_sigma1.reshape(())
+        self.vs = zero if self.lugre_vstick is None else self.lugre_vstick.reshape(())
 
     def curve_of(self, v: Tensor) -> Tensor:
         """C(v) of the friction module alone, any shape."""
         return self.curve(v.reshape(-1)).reshape(v.shape)
 
-    def secant(self, v: Tensor) -> Tensor:
-        """A dynamic model's r⁺(v) (`torchfric.models.lugre.secant`)."""
-        s = v.abs().clamp_min(self.v_floor)
-        return positive_secant(self.curve_of(s), s)
+    def level(self, v: Tensor) -> Tensor:
+        """A dynamic model's sliding level g(v) (`torchfric.models.lugre.sliding_level`)."""
+        return positive_level(self.curve_of(torch.maximum(v.abs(), self.vs)))
+
+    def rate(self, v: Tensor) -> Tensor:
+        """A dynamic model's bristle relaxation rate σ0 |v| / g(v)."""
+        return self.s0 * v.abs() / self.level(v)
 
     def black_box(self, v: Tensor) -> Tensor:
-        """C(v), or a dynamic model's sliding curve v r⁺(v) (its steady state), any shape."""
+        """C(v), or a dynamic model's sliding curve sign(v) g(v) (its steady state), any shape."""
         if self.dynamic:
-            return v * self.secant(v)
+            return torch.sign(v) * self.level(v)
         return self.curve_of(v)
 
     @torch.jit.export
@@ -187,8 +189,8 @@ class ExportedArm(nn.Module):
         [q, qdot, z]) and input u (broadcast)."""
         if self.dynamic:
             f = self.external(x, u)
-            r = self.secant(x[..., 1])
-            return bristle_field(x, f, r, self.s0, self.s1, self.inertia, self.viscous)
+            g = self.level(x[..., 1])
+            return bristle_field(x, f, g, self.s0, self.s1, self.inertia, self.viscous)
         return arm_field(
             x,
             u,
@@ -231,9 +233,8 @@ class ExportedArm(nn.Module):
         v = x[..., 1]
         f = self.external(x, uk)
         m, b = self.inertia, self.viscous
-        v_pred, _ = bristle_solve(x, f, self.s0 / self.secant(v), h, self.s0, self.s1, m, b)
-        a = self.s0 / self.secant(0.5 * (v + v_pred))
-        v1, z1 = bristle_solve(x, f, a, h, self.s0, self.s1, m, b)
+        v_pred, _ = bristle_solve(x, f, self.rate(v), h, self.s0, self.s1, m, b)
+        v1, z1 = bristle_solve(x, f, self.rate(0.5 * (v + v_pred)), h, self.s0, self.s1, m, b)
         return torch.stack([x[..., 0] + 0.5 * h * (v + v1), v1, z1], dim=-1)
 
     @torch.jit.export

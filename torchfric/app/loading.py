@@ -152,6 +152,7 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
         kwargs["torque_scale"] = m.torque_scale if m.torque_scale is not None else 0.1
     kwargs["log_positive"] = m.log_positive
     friction = make_friction(m.friction, m.size, **kwargs)
+    v_scale = kwargs.get("velocity_scale") or m.velocity_scale or 1.0
     return ArmModel(
         friction,
         inertia=m.inertia,
@@ -162,17 +163,19 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
         asymmetric=m.asymmetric,
         estimate_c_m=m.estimate_c_m,
         log_positive=m.log_positive,
-        **_bristles(m),
+        **_bristles(m, v_scale),
     )
 
 
-def _bristles(m: Any) -> dict[str, Any]:
+def _bristles(m: Any, v_scale: float) -> dict[str, Any]:
     """The dynamic-friction arguments of `ArmModel` from `[model]` (none for a static model);
-    σ1 unset is critically damped, ``2 sqrt(σ0 M)``."""
+    σ1 unset is critically damped, ``2 sqrt(σ0 M)``; the stick velocity unset is 1 % of the
+    velocity scale (the data's 95th percentile of |q̇| when that is unset too)."""
     if m.dynamic == "none":
         return {}
     sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(m.sigma0 * m.inertia)
-    return {"dynamic": m.dynamic, "sigma0": m.sigma0, "sigma1": sigma1}
+    v_stick = m.stick_velocity if m.stick_velocity is not None else 0.01 * v_scale
+    return {"dynamic": m.dynamic, "sigma0": m.sigma0, "sigma1": sigma1, "stick_velocity": v_stick}
 
 
 def initial_model(

@@ -167,6 +167,9 @@ class ModelConfig(TableSection):
         sigma0: initial bristle stiffness σ0 [torque per unit of q] of "lugre".
         sigma1: initial bristle damping σ1 [torque per unit of q̇]; ``None`` = critically damped
             from σ0 and the inertia guess, ``2 sqrt(σ0 M)``.
+        stick_velocity: initial stick velocity v_s of "lugre" [unit of q̇]: below it the sliding
+            curve is held at its value there, the static friction; ``None`` = 1 % of the
+            velocity scale.
     """
 
     friction: str = "tanh"
@@ -186,6 +189,7 @@ class ModelConfig(TableSection):
     dynamic: str = "none"
     sigma0: float = 1000.0
     sigma1: float | None = None
+    stick_velocity: float | None = None
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ("init",)
 
@@ -220,6 +224,7 @@ class ModelConfig(TableSection):
         c.string("dynamic", choices=DYNAMICS)
         c.number("sigma0", gt=0.0)
         c.number("sigma1", gt=0.0, optional=True, example=10.0)
+        c.number("stick_velocity", gt=0.0, optional=True, example=0.05)
 
 
 def _check_sizes(c: Check, m: ModelConfig) -> None:

@@ -111,11 +111,12 @@ class ArmModel(nn.Module):
         log_positive: store M, b, g_c, c_m as logarithms in θ so estimators cannot make them negative.
         dynamic: "none" (static friction, state [q, q̇]) or "lugre": a bristle state z
             (`torchfric.models.lugre`), state [q, q̇, z], whose sliding curve is the friction
-            module's; σ0 [N m/rad] and σ1 [N m s/rad] (`sigma0`, `sigma1`, > 0) join θ
-            as ``lugre_sigma0``, ``lugre_sigma1`` (a polytopic curve has a ``sigma1`` of its own).
+            module's; σ0 [N m/rad], σ1 [N m s/rad] and the stick velocity v_s [rad/s]
+            (`sigma0`, `sigma1`, `stick_velocity`, > 0) join θ as ``lugre_sigma0``,
+            ``lugre_sigma1``, ``lugre_vstick`` (a polytopic curve has a ``sigma1`` of its own).
 
     θ order: friction parameters (the friction's own order), then b, M, offset, gravity,
-    asymmetric, c_m, σ0, σ1 (each only when enabled) —
+    asymmetric, c_m, σ0, σ1, v_s (each only when enabled) —
     the paper's ``θ = [W1ᵀ W2 b M]ᵀ`` for the tanh model.
     """
 
@@ -134,6 +135,7 @@ class ArmModel(nn.Module):
         dynamic: str = "none",
         sigma0: float = 1e3,
         sigma1: float = 1.0,
+        stick_velocity: float = 0.05,
     ) -> None:
         super().__init__()
         if dynamic not in DYNAMICS:
@@ -165,6 +167,7 @@ class ArmModel(nn.Module):
         if dynamic == "lugre":
             self._add("lugre_sigma0", sigma0, positive=True)
             self._add("lugre_sigma1", sigma1, positive=True)
+            self._add("lugre_vstick", stick_velocity, positive=True)
         self._k_friction = friction.num_parameters
 
     # -- construction helpers ----------------------------------------------------------------
@@ -308,11 +311,12 @@ class ArmModel(nn.Module):
         """One step of a dynamic model's stiff-stable integrator (`lugre_substep`), `x (..., 3)`."""
         return lugre_substep(self.friction, x, u, h, fric, arm)
 
-    def black_box(self, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
+    def black_box(self, v: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]) -> Tensor:
         """The velocity-dependent part of the (steady-state) friction besides the white-box
-        terms: the module's ``C(v)``, or for a dynamic model its sliding curve ``v r⁺(v)``."""
+        terms: the module's ``C(v)``, or for a dynamic model its sliding curve ``sign(v) g(v)``
+        (`torchfric.models.lugre`); `fric`, `arm` from `split`."""
         if self.dynamic == "lugre":
-            return sliding_curve(self.friction, v, fric)
+            return sliding_curve(self.friction, v, fric, arm["lugre_vstick"])
         return self.friction.evaluate(v, fric)
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
@@ -325,7 +329,7 @@ class ArmModel(nn.Module):
         fric, arm = self.split(self.theta_vector() if theta is None else theta)
         return arm_friction(
             v,
-            self.black_box(v, fric),
+            self.black_box(v, fric, arm),
             arm.get("viscous"),
             arm.get("offset"),
             arm.get("asymmetric"),
@@ -385,7 +389,7 @@ class ArmModel(nn.Module):
 
     @property
     def _static_size(self) -> int:
-        return self.num_parameters - (2 if self.dynamic == "lugre" else 0)
+        return self.num_parameters - (len(LUGRE_NAMES) if self.dynamic == "lugre" else 0)
 
     # -- (de)serialisation -----------------------------------------------------------------------
     def spec(self) -> dict[str, Any]:
@@ -441,7 +445,12 @@ class ArmModel(nn.Module):
             log_positive=spec["log_positive"],
             asymmetric=arm.get("asymmetric"),
             **(
-                {"dynamic": "lugre", "sigma0": arm[LUGRE_NAMES[0]], "sigma1": arm[LUGRE_NAMES[1]]}
+                {
+                    "dynamic": "lugre",
+                    "sigma0": arm["lugre_sigma0"],
+                    "sigma1": arm["lugre_sigma1"],
+                    "stick_velocity": arm["lugre_vstick"],
+                }
                 if spec.get("dynamic", "none") == "lugre"
                 else {}
             ),

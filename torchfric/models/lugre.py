@@ -4,21 +4,27 @@ The arm gains an unmeasured bristle state ``z``::
 
     ż = q̇ − σ0 |q̇| z / g(q̇),     F = σ0 z + σ1 ż (+ b q̇ + the white-box terms),
 
-and ``M q̈ = c_m u − F``. The sliding curve ``g > 0`` comes from the odd friction module ``C``
-(tanh or polytopic) through its *secant* ``r(v) = C(v)/v``, an even function: ``g(v) = |v| r⁺(v)``
-with ``r⁺ = sqrt(r² + ε²) > 0``. So ``σ0 |q̇| / g(q̇) = σ0 / r⁺(q̇)`` is finite at q̇ = 0 (the
-bristles relax at ``σ0/C'(0)`` there), g is positive for every parameter value by construction
-(no penalty), and in steady sliding ``z = q̇ r⁺(q̇)/σ0``: the friction is ``q̇ r⁺(q̇) + b q̇``,
-which is the learned curve ``C(q̇) + b q̇`` wherever C has the sign of q̇ (every physical
-friction curve) and stays odd and zero at zero for any θ (`sliding_curve`).
+and ``M q̈ = c_m u − F``. The sliding curve g is the odd friction module's curve C (tanh or
+polytopic) made positive, ``g(v) = sqrt(C(s)² + ε²)`` with ``s = max(|v|, v_s)``:
 
-σ0 is stiff (the bristle rate ``σ0/r⁺`` reaches 10⁴–10⁶ 1/s), so the state is not integrated by
+- g > 0 for every parameter value, by construction (no penalty), and even in v;
+- in steady sliding ``z = sign(q̇) g(q̇)/σ0``, so the friction is ``sign(q̇) g(q̇) + b q̇``: the
+  learned curve ``C(q̇) + b q̇`` wherever ``|q̇| >= v_s`` and C has the sign of q̇ (every physical
+  friction curve), odd and zero at zero for any θ (`sliding_curve`);
+- below the *stick velocity* v_s the curve is held at ``g(0) = |C(v_s)|``, the static friction.
+  That is what makes the model stick: the bristle relaxation rate ``σ0 |q̇| / g`` vanishes at
+  rest, so under a torque below g(0) the bristles deflect elastically (pre-sliding) instead of
+  the arm creeping. Reading g at ``|q̇|`` alone would give ``g(0) = C(0) = 0``: a rate that stays
+  at ``σ0/C'(0)`` at rest, and an arm that creeps at the speed where C equals the torque.
+  v_s (> 0, log space) is estimated with σ0 and σ1 as ``lugre_vstick``.
+
+σ0 is stiff (the bristle rate reaches 10⁴–10⁶ 1/s in sliding), so the state is not integrated by
 explicit Runge–Kutta steps but by the synthetic rig's scheme (`torchfric.data.rig_model`), here
 in torch operations: over a sub-step ``h`` with the bristle rate ``a`` frozen and the velocity
 linear, ``ż = v − a z`` is solved exactly (exponential integrator), the friction enters through
 the exact mean and increment of z, and the momentum balance is linear in the new velocity, so
-one division solves it: stable at any stiffness, exact ``F = C(v) + b v`` in steady sliding.
-``a`` is taken at the sub-step's midpoint velocity from a first solve with ``a(v)`` (a
+one division solves it: stable at any stiffness, exact ``F = sign(v) g(v) + b v`` in steady
+sliding. ``a`` is taken at the sub-step's midpoint velocity from a first solve with ``a(v)`` (a
 predictor–corrector: second order). The map is differentiable (the EKF's Φ, output error's
 gradients) and made of operations the native code generator translates.
 """
@@ -33,47 +39,47 @@ from .friction import Friction
 __all__ = [
     "DYNAMICS",
     "LUGRE_NAMES",
-    "SECANT_FLOOR",
-    "V_FLOOR",
+    "LEVEL_FLOOR",
     "bristle_field",
     "bristle_solve",
     "external_torque",
-    "positive_secant",
-    "secant",
+    "positive_level",
+    "sliding_level",
     "sliding_curve",
     "lugre_field",
     "lugre_substep",
 ]
 
-# θ's names of σ0 and σ1 (the polytopic curve's own variances are sigma1, sigma2, ...).
-LUGRE_NAMES: tuple[str, str] = ("lugre_sigma0", "lugre_sigma1")
+# θ's names of σ0, σ1 and v_s (the polytopic curve's own variances are sigma1, sigma2, ...).
+LUGRE_NAMES: tuple[str, str, str] = ("lugre_sigma0", "lugre_sigma1", "lugre_vstick")
 
 # `model.dynamic` values: "none" (the static arm, state [q, q̇]) and "lugre" ([q, q̇, z]).
 DYNAMICS: tuple[str, ...] = ("none", "lugre")
 
-# ε of r⁺ = sqrt(r² + ε²) [N m s/rad]: far below any physical secant (≥ 1e-4 for a friction of
-# 1e-3 N m at 10 rad/s) yet keeps g > 0 where a curve crosses zero.
-SECANT_FLOOR = 1e-9
-V_FLOOR = 1e-6  # |v| below this reads the secant at 1e-6 rad/s (= C'(0) to rounding)
+# ε of g = sqrt(C² + ε²) [torque]: far below any physical friction level, yet g > 0 where a
+# curve crosses zero, so the bristle rate σ0 |q̇| / g stays finite.
+LEVEL_FLOOR = 1e-9
 
 
-def positive_secant(c: Tensor, s: Tensor) -> Tensor:
-    """``r⁺ = sqrt((c/s)² + ε²)`` from the curve's value ``c = C(s)`` at ``s = max(|v|, 1e-6)``."""
-    r = c / s
-    return torch.sqrt(r * r + 1e-18)  # ε² = SECANT_FLOOR² (a literal: TorchScript reads no globals)
+def positive_level(c: Tensor) -> Tensor:
+    """``g = sqrt(c² + ε²) > 0`` from the curve's value c at ``s = max(|v|, v_s)``."""
+    return torch.sqrt(c * c + 1e-18)  # ε² = LEVEL_FLOOR² (a literal: TorchScript reads no globals)
 
 
-def secant(friction: Friction, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
-    """``r⁺(v) = sqrt((C(v)/v)² + ε²)`` (even in v, > 0, finite at 0) for physical parameters
-    `fric` of the odd `friction`. C odd makes ``C(v)/v = C(|v|)/|v|``, read at ``|v| ≥ 1e-6``."""
-    s = v.abs().clamp_min(V_FLOOR)
-    return positive_secant(friction.evaluate(s, fric), s)
+def sliding_level(
+    friction: Friction, v: Tensor, fric: dict[str, Tensor], v_stick: Tensor
+) -> Tensor:
+    """``g(v) = sqrt(C(max(|v|, v_s))² + ε²)`` (even, > 0) for physical parameters `fric` of the
+    odd `friction` and the stick velocity ``v_s`` (C odd: ``|C(v)| = |C(|v|)|``)."""
+    return positive_level(friction.evaluate(torch.maximum(v.abs(), v_stick), fric))
 
 
-def sliding_curve(friction: Friction, v: Tensor, fric: dict[str, Tensor]) -> Tensor:
-    """The dynamic model's steady-state friction without its white-box terms, ``v r⁺(v)``:
-    ``sign(v) g(v)``, odd and zero at zero; equal to ``C(v)`` where C has the sign of v."""
-    return v * secant(friction, v, fric)
+def sliding_curve(
+    friction: Friction, v: Tensor, fric: dict[str, Tensor], v_stick: Tensor
+) -> Tensor:
+    """The dynamic model's steady-state friction without its white-box terms,
+    ``sign(v) g(v)``: odd and zero at zero; ``C(v)`` where ``|v| >= v_s`` and C has v's sign."""
+    return torch.sign(v) * sliding_level(friction, v, fric, v_stick)
 
 
 # The functions below are TorchScript-compatible (tensors and optional tensors only): the
@@ -102,16 +108,16 @@ def external_torque(
 def bristle_field(
     x: Tensor,
     f: Tensor,
-    r: Tensor,
+    g: Tensor,
     sigma0: Tensor,
     sigma1: Tensor,
     inertia: Tensor,
     viscous: Tensor | None = None,
 ) -> Tensor:
-    """``ẋ = [q̇, (f − σ0 z − σ1 ż − b q̇)/M, ż]`` `(..., 3)` with ``ż = q̇ − σ0 z / r`` for the
-    external torque `f` and the secant ``r = r⁺(q̇)``."""
+    """``ẋ = [q̇, (f − σ0 z − σ1 ż − b q̇)/M, ż]`` `(..., 3)` with ``ż = q̇ − σ0 |q̇| z / g`` for the
+    external torque `f` and the sliding level ``g = g(q̇)``."""
     v, z = x[..., 1], x[..., 2]
-    zdot = v - sigma0 * z / r
+    zdot = v - sigma0 * v.abs() * z / g
     force = sigma0 * z + sigma1 * zdot
     if viscous is not None:
         force = force + viscous * v
@@ -174,9 +180,9 @@ def lugre_field(
     """The continuous vector field of the model `(..., 3)` (`bristle_field`; stiff: for
     reference and tests, integrate it with `lugre_substep`)."""
     f = _external(x, u, arm)
-    r = secant(friction, x[..., 1], fric)
+    g = sliding_level(friction, x[..., 1], fric, arm["lugre_vstick"])
     return bristle_field(
-        x, f, r, arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
+        x, f, g, arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
     )
 
 
@@ -202,7 +208,12 @@ def lugre_substep(
     f = _external(x, u, arm)
     h = torch.as_tensor(h, dtype=x.dtype)
     s0, s1, M, b = arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
-    v_pred, _ = bristle_solve(x, f, s0 / secant(friction, v, fric), h, s0, s1, M, b)
+    vs = arm["lugre_vstick"]
+
+    def rate(w: Tensor) -> Tensor:  # the bristle relaxation rate σ0 |w| / g(w)
+        return s0 * w.abs() / sliding_level(friction, w, fric, vs)
+
+    v_pred, _ = bristle_solve(x, f, rate(v), h, s0, s1, M, b)
     mid = 0.5 * (v + v_pred)
-    v1, z1 = bristle_solve(x, f, s0 / secant(friction, mid, fric), h, s0, s1, M, b)
+    v1, z1 = bristle_solve(x, f, rate(mid), h, s0, s1, M, b)
     return torch.stack([x[..., 0] + 0.5 * h * (v + v1), v1, z1], dim=-1)

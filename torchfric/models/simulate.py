@@ -289,7 +289,7 @@ def full_state(model: ArmModel, x0: Tensor, theta: Tensor) -> Tensor:
         return x0
     fric, arm = model.split(theta)
     v = x0[..., 1]
-    z = model.black_box(v, fric) / arm["lugre_sigma0"]
+    z = model.black_box(v, fric, arm) / arm["lugre_sigma0"]
     return torch.cat([x0, z.unsqueeze(-1)], dim=-1)
 
 
