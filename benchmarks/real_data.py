@@ -47,7 +47,14 @@ DATA = ROOT.parent / "shared" / "data"
 CONFIGS = ROOT / "experiments" / "configs"
 
 RUNS: dict[str, list[str]] = {
-    "emps": ["emps_tanh_ekf", "emps_tanh_oe", "emps_tanh_ekf_oe", "emps_tanh_asym_oe", "emps_defaults"],
+    "emps": [
+        "emps_tanh_ekf",
+        "emps_tanh_oe",
+        "emps_tanh_ekf_oe",
+        "emps_tanh_asym_oe",
+        "emps_lugre_asym_oe",
+        "emps_defaults",
+    ],
     "hsm150": ["hsm150_tanh_oe", "hsm150_tanh_asym_oe", "hsm150_defaults"],
     "disc": ["disc_tanh_ekf", "disc_tanh_oe", "disc_defaults"],
 }

@@ -784,6 +784,29 @@ def case_study_markdown(
     cn = crossover(chg_runs["polytopic"].model.physical_parameters())
     cross_new = (f"σ1 > σ2 again, crossover at {cn:.1f} rad/s" if cn is not None
                  else "σ1 < σ2 there, so no crossover")  # fmt: skip
+    poly = ekf_runs["polytopic"].model.friction
+    if poly.init_kwargs().get("extrapolation", "gaussian") == "affine":
+        why_poly = (
+            f"The polytopic(3) model continues the line too: beyond its outer centres "
+            f"(c2 = {pp['c2']:.3g} rad/s) its outer local models hold (the affine continuation "
+            f"of issue 23), slope a2 = {pp['a2']:.4f} N·m·s/rad. With the paper's all-Gaussian "
+            "weights the local model with the *widest* variance takes over far from all "
+            "centres: the centre model, which carries the steep stick–slip transition, whenever "
+            "σ1 > σ2 (here σ1 = "
+            f"{s1:.4g} {cmp} σ2 = {s2:.4g} rad²/s²), and the friction then jumps to tens of N·m "
+            "(at 14.8 rad/s in the checkpoints before issue 23; "
+            '`PolytopicFriction(n, extrapolation="gaussian")` keeps that construction).'
+        )
+    else:
+        why_poly = (
+            "The polytopic(3) model fails for a structural reason: its weights are normalised "
+            "Gaussians, and far from all centres they go to the local model with the *widest* "
+            "variance. The centre model, which carries the steep stick–slip transition (slope "
+            f"a1 = {a1:.2f} N·m·s/rad), has σ1 = {s1:.4g} {cmp} σ2 = {s2:.4g} rad²/s², so it "
+            "takes over again where ½ q̇² (1/σ2 − 1/σ1) = q̇ c2/σ2 − ½ c2²/σ2, at "
+            f"|q̇| ≈ {cross} — and the friction jumps to tens of N·m. The re-identified "
+            f"polytopic model has the same property ({cross_new})."
+        )
     departs = {k: leaves_axes(r.model, TRUTH, 1.1 * v_far, 0.1) for k, r in ekf_runs.items()}
     depart_txt = "; ".join(
         f"{LABEL[k]} stays within 0.1 N·m of the truth up to "
@@ -868,13 +891,8 @@ friction b q̇ + C(q̇) that the curves show) as points.
 Why the extrapolation differs. The rig's friction beyond the Stribeck region is Coulomb plus
 viscous, F = Fc sign(q̇) + σ2 q̇; the tanh(3) model's neurons are saturated there
 (W1 = {w1}) and its own viscous term continues the line (b = {b_tanh:.4f} vs σ2 = {TRUTH.sigma2}
-N·m·s/rad). The polytopic(3) model fails for a structural reason: its weights are normalised
-Gaussians, and far from all centres they go to the local model with the *widest* variance. The
-centre model, which carries the steep stick–slip transition (slope a1 = {a1:.2f} N·m·s/rad), has
-σ1 = {s1:.4g} {cmp} σ2 = {s2:.4g} rad²/s², so it takes over again where
-½ q̇² (1/σ2 − 1/σ1) = q̇ c2/σ2 − ½ c2²/σ2, at |q̇| ≈ {cross} — and the friction jumps to tens of
-N·m. The re-identified polytopic model has the same property ({cross_new}). The paper's real
-arm also showed hysteresis at high velocities, which no static C(q̇) extrapolates.
+N·m·s/rad). {why_poly} The paper's real arm also showed hysteresis at high velocities, which
+no static C(q̇) extrapolates.
 """
 
 
