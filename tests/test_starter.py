@@ -138,10 +138,16 @@ def test_config_in_another_folder_names_the_data_relative_to_itself(user, record
         ),
         (("t", "u", "q", "dq"), {"t": "t", "u": "u", "q": "q", "qdot": "dq"}, "rad"),
         # an alternative as one word of the name (as engineers export them)
-        (("Time [s]", "motor_current", "angle_deg"),
-         {"t": "Time [s]", "u": "motor_current", "q": "angle_deg"}, "deg"),  # fmt: skip
-        (("time_s", "force_cmd_N", "pos_mm"),
-         {"t": "time_s", "u": "force_cmd_N", "q": "pos_mm"}, "mm"),  # fmt: skip
+        (
+            ("Time [s]", "motor_current", "angle_deg"),
+            {"t": "Time [s]", "u": "motor_current", "q": "angle_deg"},
+            "deg",
+        ),  # fmt: skip
+        (
+            ("time_s", "force_cmd_N", "pos_mm"),
+            {"t": "time_s", "u": "force_cmd_N", "q": "pos_mm"},
+            "mm",
+        ),  # fmt: skip
     ],
 )
 def test_alternative_column_names_map(user, record, capsys, header, columns, unit) -> None:  # type: ignore[no-untyped-def]
@@ -360,6 +366,21 @@ def test_white_box_terms_are_offered_commented_out_and_each_works(  # type: igno
     assert main(["check", "on.toml"]) == 0  # the model builds and the pre-fit runs with it
     out = capsys.readouterr().out
     assert f"9 parameters, c_m 16 (known, fixed); terms: {term}" in out
+
+
+def test_lugre_is_offered_commented_out_and_works(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    _csv(user / "rec.csv", record)
+    assert main(["init", "rec.csv", "--c-m", "16"]) == 0
+    capsys.readouterr()
+    text = (user / "rec.toml").read_text()
+    line = '# dynamic = "lugre"'
+    assert text.split("\n[model]\n")[1].count(f"\n{line}\n") == 1
+    assert Config.load(user / "rec.toml").model.dynamic == "none"  # off as written
+    (user / "on.toml").write_text(text.replace(f"\n{line}\n", '\ndynamic = "lugre"\n'))
+    assert Config.load(user / "on.toml").model.dynamic == "lugre"
+    assert main(["check", "on.toml"]) == 0
+    out = capsys.readouterr().out
+    assert "with LuGre bristles (sigma0 1000, sigma1" in out and "12 parameters" in out
 
 
 @pytest.mark.parametrize(

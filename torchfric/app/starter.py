@@ -259,6 +259,10 @@ _TERMS = (
      "rad or deg, 0 hanging straight down); for an arm that swings back when let go."),
     ("asymmetric", 0.0, "a·|q̇|, viscous slope b + a forwards and b − a backwards; "
      "try it when the machine runs faster one way than the other under the same input."),
+    ("dynamic", "lugre", "LuGre bristle dynamics around the learned curve (stick, pre-sliding, "
+     "hysteresis); try it when a small reversal moves a few encoder counts and comes back, or "
+     "when static models cannot lift the validation FIT. Set model.sigma0 so that the "
+     "pre-sliding range (static friction / sigma0) is a few encoder counts."),
 )  # fmt: skip
 """[model] keys written commented out: (key, example value, when to turn it on)."""
 _FOUND = (
