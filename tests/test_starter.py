@@ -380,7 +380,7 @@ def test_lugre_is_offered_commented_out_and_works(user, record, capsys) -> None:
     assert Config.load(user / "on.toml").model.dynamic == "lugre"
     assert main(["check", "on.toml"]) == 0
     out = capsys.readouterr().out
-    assert "with LuGre bristles (sigma0 1000, sigma1" in out and "12 parameters" in out
+    assert "with LuGre bristles (sigma0 1000, sigma1" in out and "11 parameters" in out
 
 
 @pytest.mark.parametrize(
