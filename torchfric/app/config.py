@@ -12,6 +12,7 @@ Each section is a frozen dataclass that checks its own values on construction
     passes = 10
     [simulation]                   # SimulationConfig
     [log]                          # LogConfig
+    [track]                        # TrackConfig (torchfric track)
 
 Rules the loader applies (`Config.load`):
 
@@ -75,7 +76,7 @@ from .schema import (
     suggest,
     unknown_section_key,
 )
-from .sections import DataConfig, LogConfig, ModelConfig, SimulationConfig
+from .sections import DataConfig, LogConfig, ModelConfig, SimulationConfig, TrackConfig
 from .toml_io import parse_value, to_toml
 
 __all__ = [
@@ -85,6 +86,7 @@ __all__ = [
     "EstimatorConfig",
     "LogConfig",
     "SimulationConfig",
+    "TrackConfig",
     "COLUMN_NAMES",
     "ENSEMBLE_KEYS",
     "ESTIMATORS",
@@ -114,6 +116,7 @@ _SECTIONS: dict[str, type[TableSection]] = {
     "estimator": EstimatorConfig,
     "simulation": SimulationConfig,
     "log": LogConfig,
+    "track": TrackConfig,
 }
 
 
@@ -145,6 +148,7 @@ class Config:
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)
 
     def __post_init__(self) -> None:
         c = Check(self, "")

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from ..errors import TorchfricError
+from ..estimators.tracking import TrackSettings
 from ..models.friction import FRICTIONS
 from ..models.lugre import DYNAMICS
 from ..models.simulate import SOLVERS
@@ -28,7 +29,14 @@ from .schema import (
     suggest,
 )
 
-__all__ = ["AUTO_SIZES", "DataConfig", "LogConfig", "ModelConfig", "SimulationConfig"]
+__all__ = [
+    "AUTO_SIZES",
+    "DataConfig",
+    "LogConfig",
+    "ModelConfig",
+    "SimulationConfig",
+    "TrackConfig",
+]
 
 AUTO_SIZES: dict[str, tuple[int, ...]] = {"tanh": (1, 2, 3, 4, 5, 6, 7), "polytopic": (3, 5, 7, 9)}
 """The sizes ``model.size = "auto"`` tries without ``model.sizes``, for the frictions that have
@@ -297,3 +305,42 @@ class LogConfig(TableSection):
 
     def __post_init__(self) -> None:
         Check(self, "log").auto_or_integer("figure_every", ge=0, example=5)
+
+
+@dataclass(frozen=True)
+class TrackConfig(TrackSettings, TableSection):
+    """``[track]``: ``torchfric track``, the EKF run on-line from a checkpoint
+    (`torchfric.estimators.tracking`; times in seconds).
+
+    Attributes:
+        q_theta: random-walk intensity of θ (estimation coordinates² per second; log-stored
+            parameters such as M: relative).
+        forgetting: forgetting factor λ in (0, 1]; ``P_θθ`` is divided by λ every sample
+            (1 = off).
+        block: the change detector averages the normalised innovations (NIS) over blocks this
+            long.
+        calibrate: how long the detector measures its baseline, at the start and after a
+            change's hold-off (the machine is assumed unchanged then).
+        holdoff: after a change, how long detection pauses while θ re-converges.
+        false_alarm_hours: the mean time between false alarms on unchanged data that the
+            detector's threshold is designed for (a CUSUM on the standardised NIS block means).
+        reopen: the variance added to each θ entry's ``P_θθ`` after a change, so that θ
+            converges to the changed machine quickly.
+        detect: run the change detector.
+
+    The fields and defaults are `torchfric.estimators.tracking.TrackSettings`' (this section is
+    those settings, checked), so the tracker takes the section as it is.
+    """
+
+    def __post_init__(self) -> None:
+        c = Check(self, "track")
+        c.number("q_theta", ge=0.0)
+        c.number("forgetting", gt=0.0)
+        if self.forgetting > 1.0:
+            c.range_error("forgetting", self.forgetting, "a number in (0, 1]")
+        c.number("block", gt=0.0)
+        c.number("calibrate", gt=0.0)
+        c.number("holdoff", ge=0.0)
+        c.number("false_alarm_hours", gt=0.0)
+        c.number("reopen", ge=0.0)
+        c.boolean("detect")

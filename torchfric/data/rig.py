@@ -43,6 +43,7 @@ __all__ = [
     "EXPERIMENTS",
     "EXCITATIONS",
     "rig_experiment",
+    "changing_record",
     "generate",
 ]
 
@@ -106,6 +107,34 @@ def rig_experiment(
     if key not in _CACHE:
         _CACHE[key] = _run_experiment(name, int(seed), integrate)
     return {k: v.copy() for k, v in _CACHE[key].items()}
+
+
+def changing_record(
+    before: float,
+    after: float,
+    *,
+    seed: int = 0,
+    kind: str = "validation",
+    integrate: Integrator | None = None,
+) -> dict[str, np.ndarray]:
+    """One continuous record in which the rig changes: `before` seconds of the nominal system,
+    then `after` seconds of the system "after maintenance" (`RigParameters.changed`), the state
+    ``(q, q̇, z)`` carried across the change (the machine is not stopped). The input is one
+    `excitation` of `kind` over the whole record. Keys as `simulate_rig`'s, plus ``change``
+    (the change's time, a 0-d array). For tracking (``torchfric track``) tests and benchmarks.
+    """
+    p = RigParameters()
+    if not (before > 0 and after > 0):
+        raise TorchfricError(f"changing_record needs before, after > 0 s, got {before}, {after}")
+    u = excitation(kind, duration=before + after, dt=p.dt, seed=_check_seed(seed))
+    n1 = int(round(before / p.dt))
+    first = simulate_rig(p, u[: n1 + 1], seed=[seed, 11], integrate=integrate)
+    x0 = (first["q_true"][-1], first["qdot_true"][-1], first["z"][-1])
+    second = simulate_rig(p.changed(), u[n1:], seed=[seed, 12], x0=x0, integrate=integrate)
+    out = {k: np.concatenate([first[k][:-1], second[k]]) for k in first if k != "t"}
+    out["t"] = np.arange(u.size) * p.dt
+    out["change"] = np.asarray(n1 * p.dt)
+    return out
 
 
 def _friction_table(params: RigParameters, v: np.ndarray) -> list[list[float]]:

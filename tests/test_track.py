@@ -1,0 +1,190 @@
+"""``torchfric track``: the recursive EKF against the off-line pass, the change detector's
+statistics, a synthetic change found and an unchanged record left alone, the outputs (track.csv,
+events.json, final.pt, the figure, TensorBoard), ``--follow`` on a growing file, and bad input."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+
+import torchfric.accel  # noqa: F401  (the compiled step)
+from torchfric.app.checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
+from torchfric.app.cli import main
+from torchfric.data.rig import RigParameters, changing_record, excitation, simulate_rig
+from torchfric.estimators.ekf import EKFState, make_propagator, make_step, run_pass
+from torchfric.estimators.tracking import NisDetector, Tracker, TrackSettings, cusum_threshold
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CHECKPOINT = ROOT / "checkpoints" / "arm_tanh_ekf.pt"
+
+
+def _csv(path: pathlib.Path, rec: dict, rows: slice = slice(None)) -> None:
+    cols = np.column_stack([rec["t"], rec["u"], rec["q"]])[rows]
+    np.savetxt(path, cols, delimiter=",", header="t,u,q", comments="", fmt="%.17g")
+
+
+def _model():  # type: ignore[no-untyped-def]
+    raw = read_checkpoint(CHECKPOINT)
+    return checkpoint_model(raw, CHECKPOINT), checkpoint_config(raw), raw
+
+
+# ------------------------------------------------------------------------------- the filter
+def test_tracking_without_parameter_noise_is_the_offline_pass() -> None:
+    """With q_theta = 0, no forgetting and no detector the tracker is the off-line EKF pass:
+    the same step over the same samples gives the same θ and P (chunked or not)."""
+    model, cfg, raw = _model()
+    tuning = cfg.estimator.ekf_tuning()
+    arr = simulate_rig(RigParameters(), excitation("validation", duration=3.0, seed=4), seed=4)
+    t, u, q = (torch.tensor(arr[k]) for k in ("t", "u", "q"))
+    y = torch.stack([q, torch.tensor(arr["qdot_true"])], 1)
+    theta, P_theta = model.get_theta(), raw["estimator"]["state"]["P_theta"]
+    off = TrackSettings(q_theta=0.0, detect=False)
+    tracker = Tracker(model, theta, P_theta, tuning, off, 1e-3, every=97)
+    rows = list(tracker.run(t[:1500], u[:1500], y[:1500])) + list(
+        tracker.run(t[1500:], u[1500:], y[1500:])
+    )
+    assert len(rows) == 16 + 16 and rows[-1].t == pytest.approx(float(t[-1]))
+    Q, P0_xx, H, R = tuning.matrices(model.num_parameters)
+    n = 2 + model.num_parameters
+    x0 = torch.cat([y[0], theta])
+    P0 = torch.zeros(n, n, dtype=torch.float64)
+    P0[:2, :2], P0[2:, 2:] = P0_xx, P_theta
+    step = make_step(make_propagator(model, tuning.substeps), compile=True)
+    state, _ = run_pass(EKFState(x0, P0), u, y, torch.tensor(1e-3, dtype=torch.float64), Q, H,
+                        R, step)  # fmt: skip
+    torch.testing.assert_close(tracker.state.x, state.x, rtol=1e-10, atol=1e-13)
+    torch.testing.assert_close(tracker.state.P, state.P, rtol=1e-8, atol=1e-16)
+
+
+def test_cusum_threshold_meets_its_design_run_length() -> None:
+    """Siegmund's threshold against simulation: iid unit Gaussian block means through the CUSUM
+    alarm about once per ARL₀ blocks (the approximation is known to be a little conservative)."""
+    for kappa in (0.5, 1.0):
+        h = cusum_threshold(500.0, kappa)
+        assert cusum_threshold(5000.0, kappa) > h > cusum_threshold(50.0, kappa)
+        rng = np.random.default_rng(0)
+        runs = []
+        for _ in range(200):
+            g, n = 0.0, 0
+            while g <= h:
+                g = max(0.0, g + rng.standard_normal() - kappa)
+                n += 1
+            runs.append(n)
+        assert 350 < np.mean(runs) < 1000, (kappa, np.mean(runs))
+
+
+def test_detector_calibrates_holds_off_and_finds_a_shift() -> None:
+    """A consistent filter's NIS (χ² with 2 degrees of freedom) whose mean rises by 60 % at
+    t = 20 s: one alarm, within half a second, none before (blocks of 100: near-Gaussian means),
+    whatever the split of the stream into calls."""
+    det = NisDetector(block=100, calibrate_blocks=50, holdoff_blocks=20,
+                      threshold=cusum_threshold(1e5))  # fmt: skip
+    rng = np.random.default_rng(1)
+    nis = rng.chisquare(2, 30000)
+    nis[20000:] *= 1.6
+    t = np.arange(30000) * 1e-3
+    found = det.feed(nis[:1234], t[:1234]) + det.feed(nis[1234:], t[1234:])
+    assert len(found) == 1 and 20.0 < found[0] < 20.5
+
+
+# ------------------------------------------------------------------------------- the command
+@pytest.fixture(scope="module")
+def change_run(tmp_path_factory) -> tuple[pathlib.Path, dict]:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("track")
+    rec = changing_record(25.0, 20.0, seed=0)  # passes the low speeds (where Fs matters) at once
+    _csv(d / "rec.csv", rec)
+    args = ["track", str(CHECKPOINT), str(d / "rec.csv"), "--out", str(d / "out"), "--quiet"]
+    assert main(args) == 0
+    return d / "out", rec
+
+
+def test_a_change_is_found_within_two_seconds(change_run) -> None:  # type: ignore[no-untyped-def]
+    out, rec = change_run
+    events = json.loads((out / "events.json").read_text())
+    assert len(events["changes"]) == 1
+    assert 0.0 < events["changes"][0] - float(rec["change"]) < 2.0
+    assert events["detector"]["threshold"] == pytest.approx(cusum_threshold(3600.0 / 0.1))
+
+
+def test_outputs_are_complete_and_the_final_checkpoint_works(change_run, capsys) -> None:  # type: ignore[no-untyped-def]
+    out, rec = change_run
+    header = (out / "track.csv").read_text().splitlines()[0].split(",")
+    assert header[:3] == ["t", "W1[1]", "W1[1]_std"] and header[-2:] == ["inertia", "inertia_std"]
+    table = np.loadtxt(out / "track.csv", delimiter=",", skiprows=1)
+    assert table.shape == (np.ceil((rec["t"].size - 1) / 100), 17)
+    assert np.all(table[:, 2::2] > 0) and np.all(np.isfinite(table))
+    final = read_checkpoint(out / "final.pt")
+    model = checkpoint_model(final, out / "final.pt")
+    assert float(model.inertia.detach()) == pytest.approx(table[-1, -2], rel=1e-12)
+    assert (out / "track.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert main(["evaluate", str(out / "final.pt"), "rig:changed_validation"]) == 0
+    assert "FIT %" in capsys.readouterr().out
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(out))
+    acc.Reload()
+    assert "track/inertia" in acc.Tags()["scalars"] and "track/change" in acc.Tags()["scalars"]
+    assert len(acc.Scalars("track/inertia")) == table.shape[0]
+
+
+def test_an_unchanged_record_raises_no_alarm(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    p = RigParameters()
+    rec = simulate_rig(p, excitation("validation", duration=60.0, seed=5), seed=5)
+    _csv(tmp_path / "rec.csv", rec)
+    assert main(["track", str(CHECKPOINT), str(tmp_path / "rec.csv"), "--out",
+                 str(tmp_path / "out"), "--quiet"]) == 0  # fmt: skip
+    assert json.loads((tmp_path / "out" / "events.json").read_text())["changes"] == []
+
+
+def test_follow_reads_a_growing_file(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    rec = simulate_rig(RigParameters(), excitation("validation", duration=4.0, seed=6), seed=6)
+    _csv(tmp_path / "rec.csv", rec, slice(0, 1500))
+    cmd = [sys.executable, "-m", "torchfric", "track", str(CHECKPOINT), str(tmp_path / "rec.csv"),
+           "--out", str(tmp_path / "out"), "--follow", "--idle", "4", "--every", "50"]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(3.0)
+    _csv(tmp_path / "more.csv", rec)  # the writer appends the rest
+    (tmp_path / "rec.csv").write_text((tmp_path / "more.csv").read_text())
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    assert "tracked 4000 samples" in out
+    rows = np.loadtxt(tmp_path / "out" / "track.csv", delimiter=",", skiprows=1)
+    assert rows[-1, 0] == pytest.approx(rec["t"][-1])
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--every", "0"], "--every must be an integer >= 1"),
+        (["--set", "track.forgetting=2"], "track.forgetting = 2.0 is out of range"),
+        (["--set", "track.qtheta=1"], 'unknown key "track.qtheta"'),
+    ],
+)
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, extra, message) -> None:  # type: ignore[no-untyped-def]
+    rec = simulate_rig(RigParameters(), excitation("validation", duration=1.0, seed=1), seed=1)
+    _csv(tmp_path / "rec.csv", rec)
+    code = main(["track", str(CHECKPOINT), str(tmp_path / "rec.csv"), "--out",
+                 str(tmp_path / "out"), *extra])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("error: ") and message in err and "\n" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_earlier_output_is_never_overwritten(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    rec = simulate_rig(RigParameters(), excitation("validation", duration=1.0, seed=1), seed=1)
+    _csv(tmp_path / "rec.csv", rec)
+    base = ["track", str(CHECKPOINT), str(tmp_path / "rec.csv"), "--out", str(tmp_path / "out"),
+            "--quiet"]  # fmt: skip
+    assert main(base) == 0
+    before = (tmp_path / "out" / "track.csv").read_bytes()
+    capsys.readouterr()
+    assert main(base) == 2
+    assert "exists and is not empty" in capsys.readouterr().err
+    assert (tmp_path / "out" / "track.csv").read_bytes() == before

@@ -1,0 +1,285 @@
+"""On-line tracking: the EKF run recursively from an identified θ, with change detection.
+
+The paper identifies off-line and names recursive estimation as future work. `Tracker` runs
+the augmented-state EKF (`torchfric.estimators.ekf`, the same step, compiled the same way) over
+a record as it comes, chunk by chunk, from a checkpoint's θ and ``P_θθ``:
+
+- **Random-walk parameters.** θ follows ``θ̇ = w_θ`` with intensity `q_theta` (estimation
+  coordinates per second: a log-stored M with ``q_theta = 1e-6`` may drift by 0.1 % per
+  second's square root), so the filter keeps following a slow change; optionally a forgetting
+  factor λ divides ``P_θθ`` by λ per sample (applied at the end of each chunk as ``λ^n``).
+- **Change detection** (`NisDetector`): the normalised innovations squared (NIS) of a filter
+  that matches its machine have a stationary mean; a change of the machine raises it. The NIS is
+  averaged over blocks (0.1 s), standardised by its mean and spread over a calibration period
+  (the first 20 s, and again after each change's hold-off), and a one-sided CUSUM
+  ``g ← max(0, g + y − κ)``, κ = 1 (tuned to shifts of two standard deviations and more: the
+  NIS of a static model on a dynamic machine varies with the regime, stick or slip, so smaller
+  shifts are what unchanged data do), raises an alarm above a threshold h chosen for a stated
+  mean time between false alarms (Siegmund's approximation of the average run length,
+  ``ARL₀ ≈ (e^{2κb} − 2κb − 1) / 2κ², b = h + 1.166``, for independent Gaussian block means).
+- **After a change** ``P_θθ`` is re-opened (``+ reopen · I``) so that θ converges to the new
+  machine quickly, and detection holds off while it does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import TorchfricError
+from ..models.arm import ArmModel
+from .ekf import MEASUREMENTS, EKFState, make_propagator, make_step, update
+from .passes import measurements
+from .settings import EKFTuning
+
+__all__ = [
+    "TrackSettings",
+    "NisDetector",
+    "Tracker",
+    "TrackRow",
+    "cusum_threshold",
+    "tracking_data",
+]
+
+_KAPPA = 1.0  # CUSUM reference value, in standard deviations of a block mean
+
+
+def cusum_threshold(arl0: float, kappa: float = _KAPPA) -> float:
+    """The CUSUM threshold h whose in-control average run length is `arl0` blocks (Siegmund's
+    approximation for a unit-variance Gaussian; monotone in h, solved by bisection)."""
+    if not arl0 > 1:
+        raise TorchfricError(f"the mean run to a false alarm must exceed one block, got {arl0}")
+
+    def arl(h: float) -> float:
+        b = 2.0 * kappa * (h + 1.166)
+        return (math.exp(b) - b - 1.0) / (2.0 * kappa * kappa)
+
+    lo, hi = 0.0, 1.0
+    while arl(hi) < arl0:
+        hi *= 2.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if arl(mid) < arl0 else (lo, mid)
+    return hi
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """Tracking settings (the ``[track]`` config section; times in seconds).
+
+    Attributes:
+        q_theta: random-walk intensity of θ (estimation coordinates² per second).
+        forgetting: λ in (0, 1]: ``P_θθ`` is divided by λ every sample (1 = off).
+        block: length of the NIS blocks the detector averages.
+        calibrate: how long the detector measures its baseline, at the start and after each
+            change's hold-off.
+        holdoff: after a change, how long detection pauses while θ re-converges.
+        false_alarm_hours: the mean time between false alarms on unchanged data that the
+            threshold is designed for.
+        reopen: the variance added to ``P_θθ``'s diagonal after a change.
+        detect: run the change detector at all.
+    """
+
+    q_theta: float = 1e-6
+    forgetting: float = 1.0
+    block: float = 0.1
+    calibrate: float = 20.0
+    holdoff: float = 10.0
+    false_alarm_hours: float = 1.0
+    reopen: float = 0.01
+    detect: bool = True
+
+
+@dataclass
+class NisDetector:
+    """One-sided CUSUM on standardised NIS block means (see the module docstring).
+
+    Feed it per-sample NIS values with their times (`feed`); it returns the times of the changes
+    it detects. `block` and the other periods are in samples; `threshold` is h."""
+
+    block: int
+    calibrate_blocks: int
+    holdoff_blocks: int
+    threshold: float
+    _pending: list[float] = field(default_factory=list)
+    _baseline: list[float] = field(default_factory=list)
+    _wait: int = 0
+    _mean: float = float("nan")
+    _std: float = float("nan")
+    g: float = 0.0
+
+    @classmethod
+    def from_settings(cls, s: TrackSettings, dt: float) -> NisDetector:
+        block = max(1, round(s.block / dt))
+        block_s = block * dt
+        arl0 = s.false_alarm_hours * 3600.0 / block_s
+        return cls(
+            block=block,
+            calibrate_blocks=max(10, round(s.calibrate / block_s)),
+            holdoff_blocks=round(s.holdoff / block_s),
+            threshold=cusum_threshold(arl0),
+        )
+
+    @property
+    def calibrated(self) -> bool:
+        return math.isfinite(self._mean)
+
+    def feed(self, nis: np.ndarray, t: np.ndarray) -> list[float]:
+        """Per-sample NIS and times; the times at which a change was detected (the end of the
+        block that crossed the threshold)."""
+        changes = []
+        values = np.concatenate([np.asarray(self._pending), nis])
+        times = np.concatenate([np.full(len(self._pending), np.nan), t])
+        n = len(values) // self.block
+        for j in range(n):
+            mean = float(values[j * self.block : (j + 1) * self.block].mean())
+            if self._block(mean):
+                changes.append(float(times[(j + 1) * self.block - 1]))
+        self._pending = values[n * self.block :].tolist()
+        return changes
+
+    def _block(self, mean: float) -> bool:
+        """One block mean through hold-off, calibration and the CUSUM; True on an alarm."""
+        if self._wait > 0:
+            self._wait -= 1
+            return False
+        if not self.calibrated:
+            self._baseline.append(mean)
+            if len(self._baseline) >= self.calibrate_blocks:
+                b = np.asarray(self._baseline)
+                self._mean, self._std = float(b.mean()), float(max(b.std(), 1e-12 * abs(b.mean())))
+            return False
+        self.g = max(0.0, self.g + (mean - self._mean) / self._std - _KAPPA)
+        if self.g <= self.threshold:
+            return False
+        # a change: start over after the hold-off, with a new baseline
+        self.g, self._wait = 0.0, self.holdoff_blocks
+        self._baseline, self._mean, self._std = [], float("nan"), float("nan")
+        return True
+
+
+@dataclass
+class TrackRow:
+    """The estimate after sample `k` (time `t`): θ `(k,)` and ``P_θθ`` `(k, k)`."""
+
+    t: float
+    theta: Tensor
+    P_theta: Tensor
+
+
+class Tracker:
+    """The recursive EKF over a stream of samples (see the module docstring).
+
+    Args:
+        model: the identified model (its structure; θ and P_θθ are the start).
+        theta, P_theta: the start, estimation coordinates.
+        tuning: the filter's Q (states), R, measurement and sub-steps (from the run's config).
+        settings: `TrackSettings`.
+        dt: the sample time.
+        every: samples per compiled chunk, and per row of the output.
+        compile: run the step as generated C (as a run does); False: eager.
+    """
+
+    def __init__(
+        self,
+        model: ArmModel,
+        theta: Tensor,
+        P_theta: Tensor,
+        tuning: EKFTuning,
+        settings: TrackSettings,
+        dt: float,
+        *,
+        every: int = 100,
+        compile: bool = True,
+    ) -> None:
+        self.model, self.settings, self.tuning, self.every = model, settings, tuning, every
+        k, s = model.num_parameters, model.state_size
+        Q, P0_xx, self.H, self.R = tuning.matrices(k, s)
+        Q[s:, s:] = Q[s:, s:] + settings.q_theta * torch.eye(k, dtype=torch.float64)
+        self.Q, self.P0_xx, self.states = Q, P0_xx, s
+        self.dt = torch.tensor(dt, dtype=torch.float64)
+        self.bound = torch.tensor(tuning.theta_bound, dtype=torch.float64)
+        flow = make_propagator(model, tuning.substeps)
+        self.step = make_step(flow, compile=compile, chunk=every)
+        self.theta0 = theta.clone()
+        self.state: EKFState | None = None
+        self._P_theta0 = P_theta.clone()
+        self.detector = NisDetector.from_settings(settings, dt) if settings.detect else None
+        self.changes: list[float] = []
+        self.samples = 0
+
+    def _start(self, y0: Tensor) -> None:
+        """The belief at the first sample: [q0, q̇0 (measured or 0), z = 0, θ], then an update."""
+        k, s = self.theta0.numel(), self.states
+        x = torch.zeros(s + k, dtype=torch.float64)
+        for j, i in enumerate(MEASUREMENTS[self.tuning.measure]):
+            x[i] = y0[j]  # the measured entries of [q, q̇]; the others start at 0
+        x[s:] = self.theta0
+        P = torch.zeros(s + k, s + k, dtype=torch.float64)
+        P[:s, :s] = self.P0_xx
+        P[s:, s:] = self._P_theta0
+        self.state, _ = update(EKFState(x, P), y0, self.H, self.R)
+
+    def run(self, t: Tensor, u: Tensor, y: Tensor) -> Iterator[TrackRow]:
+        """Filter the samples ``(t, u, y)`` that follow those already seen (u held over each
+        interval from its sample to the next); yields a row every `every` samples."""
+        if self.state is None:
+            self._start(y[0])
+            t, u, y = t[1:], u, y[1:]
+            u_prev = u[:-1]
+        else:
+            u_prev = torch.cat([self._u_last, u[:-1]])
+        self._u_last = u[-1:].clone()
+        n = y.shape[0]
+        for i in range(0, n, self.every):
+            m = min(self.every, n - i)
+            yield self._chunk(t[i : i + m], u_prev[i : i + m], y[i : i + m])
+
+    def _chunk(self, t: Tensor, u: Tensor, y: Tensor) -> TrackRow:
+        assert self.state is not None
+        C = self.every
+        valid = torch.zeros(C, dtype=torch.bool)
+        valid[: len(t)] = True
+        pad = C - len(t)
+        xs = (torch.nn.functional.pad(u, (0, pad)), torch.nn.functional.pad(y, (0, 0, 0, pad)))
+        consts = (self.dt, self.Q, self.H, self.R, self.bound)
+        chunk = getattr(self.step, "chunk", None)
+        if chunk is not None:
+            (x, P), (_, nis, _, ok) = chunk((self.state.x, self.state.P), xs, valid, consts)
+        else:
+            x, P, nis_list, ok_list = self.state.x, self.state.P, [], []
+            for j in range(len(t)):
+                x, P, _, nis_j, _, ok_j = self.step(x, P, u[j], y[j], *consts)
+                nis_list.append(nis_j)
+                ok_list.append(ok_j)
+            nis, ok = torch.stack(nis_list), torch.stack(ok_list)
+        if not bool(ok[: len(t)].all()):
+            bad = int((~ok[: len(t)]).nonzero()[0, 0])
+            raise TorchfricError(
+                f"the tracking filter diverged at t = {float(t[bad]):.4f} s (the belief became "
+                "non-finite, non-PSD or θ left its box); lower track.q_theta or track.reopen"
+            )
+        s = self.states
+        if self.settings.forgetting < 1.0:
+            P = P.clone()
+            P[s:, s:] = P[s:, s:] / self.settings.forgetting ** len(t)
+        self.samples += len(t)
+        if self.detector is not None:
+            found = self.detector.feed(nis[: len(t)].numpy(), t.numpy())
+            if found:
+                self.changes.extend(found)
+                P = P.clone()
+                k = P.shape[0] - s
+                P[s:, s:] = P[s:, s:] + self.settings.reopen * torch.eye(k, dtype=P.dtype)
+        self.state = EKFState(x, P)
+        return TrackRow(float(t[-1]), x[s:].clone(), P[s:, s:].clone())
+
+
+def tracking_data(exp, measure: str) -> tuple[Tensor, Tensor, Tensor]:  # type: ignore[no-untyped-def]
+    """``(t, u, y)`` of an `Experiment` for the tracker (the filter's measured channels)."""
+    return exp.t.to(torch.float64), exp.u.to(torch.float64), measurements(exp, measure)
