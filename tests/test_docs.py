@@ -157,10 +157,10 @@ def test_documented_subcommands_exist(page: pathlib.Path) -> None:
 def test_the_subcommand_check_sees_commands() -> None:
     text = (
         "run `torchfric train my.toml`, not `a torchfric checkpoint`, or\n\n```bash\n"
-        "pip install -e . && torchfric check X\ntorchfric sweep X  # torchfric needed\n```\n"
+        "pip install -e . && torchfric check X\ntorchfric frobnicate X  # torchfric needed\n```\n"
     )
-    assert _subcommands(text) == {"train", "check", "sweep"}
-    assert "sweep" not in _known_subcommands()
+    assert _subcommands(text) == {"train", "check", "frobnicate"}
+    assert "frobnicate" not in _known_subcommands()
 
 
 def _source_text() -> str:

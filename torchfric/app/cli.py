@@ -1,4 +1,4 @@
-"""Command line: ``torchfric init | check | train | evaluate | simulate | export | generate``.
+"""Command line: ``torchfric init | check | train | evaluate | simulate | export | track | sweep | generate``.
 
 User errors (bad config, data, checkpoints, a diverging filter) print one line
 ``error: <message>`` and exit with status 2 — never a traceback.
@@ -22,6 +22,7 @@ from ..errors import RunInterrupted, TorchfricError
 from ..files import json_safe
 from ..version import __version__
 from .api import torch_settings, train_on_stderr
+from .track import add_track_parser
 from .use import cmd_evaluate, cmd_export, cmd_simulate
 
 __all__ = ["main"]
@@ -311,6 +312,56 @@ def _add_check(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_check)
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweep import run_sweep
+    from .sweep_out import summary_lines
+
+    result = run_sweep(
+        args.config, args.space, args.trials, out=args.out, jobs=args.jobs,
+        storage=args.storage, backend=args.backend, sets=list(args.set or []),
+    )  # fmt: skip
+    print("\n".join(summary_lines(result)))
+    return 0
+
+
+def _add_sweep(sub: argparse._SubParsersAction) -> None:
+    """``torchfric sweep CONFIG --space SPACE --trials N --out DIR``: many runs, the best kept."""
+    p = sub.add_parser(
+        "sweep",
+        help="train over a search space (Optuna) and keep the best config",
+        description="Train CONFIG once per trial with values drawn from SPACE.toml's [space] "
+        "table (Optuna), each run in DIR/trials/NNNN; prune trials that fall behind; write "
+        "DIR/trials.csv, DIR/best.toml and DIR/sweep.png. The same command again continues the "
+        "study until N trials have finished. Progress goes to stderr, the summary to stdout.",
+    )
+    _add_config_and_sets(p)
+    p.add_argument(
+        "--space", required=True, metavar="SPACE.toml",
+        help='search space: a [space] table of config keys, e.g. "model.size" = '
+        "{ choices = [2, 3, 4] } (see docs/cli.md)",
+    )  # fmt: skip
+    p.add_argument(
+        "--trials", required=True, type=int, metavar="N",
+        help="trials in the study in all (finished: complete, pruned or failed)",
+    )  # fmt: skip
+    p.add_argument("--out", required=True, metavar="DIR", help="the sweep's folder")
+    p.add_argument(
+        "--jobs", type=int, default=1, metavar="J",
+        help="trials at once: worker processes on this machine (Ray: CPUs; default 1)",
+    )  # fmt: skip
+    p.add_argument(
+        "--storage", default=None, metavar="URL",
+        help="the study's database (default sqlite:///DIR/study.db); a shared PostgreSQL or "
+        "MySQL URL lets several machines work on one study",
+    )  # fmt: skip
+    p.add_argument(
+        "--backend", choices=("optuna", "ray"), default="optuna",
+        help="optuna: trials in local processes (default); ray: through Ray Tune, on a local "
+        "Ray or the cluster of RAY_ADDRESS",
+    )  # fmt: skip
+    p.set_defaults(func=_cmd_sweep)
+
+
 def _add_config_and_sets(p: argparse.ArgumentParser) -> None:
     """The CONFIG argument and ``--set`` overrides that ``train`` and ``check`` share."""
     p.add_argument("config", help="TOML config file (see experiments/configs/)")
@@ -338,6 +389,8 @@ def build_parser() -> argparse.ArgumentParser:
         _add_evaluate,
         _add_simulate,
         _add_export,
+        add_track_parser,
+        _add_sweep,
         _add_generate,
     ):
         add(sub)

@@ -22,7 +22,7 @@ from ..errors import DivergenceError, RunInterrupted, TorchfricError
 from ..estimators.ensemble import identify_ekf_ensemble
 from ..estimators.identify import EKFResult, PassRecord, identify_ekf
 from ..estimators.metrics import SimulationScore
-from ..estimators.observers import CallbackList
+from ..estimators.observers import Callback, CallbackList
 from ..estimators.output_error import EpochRecord, identify_output_error
 from ..files import atomic_write_text, json_safe, write_json
 from ..models.arm import ArmModel
@@ -48,8 +48,7 @@ from .snapshots import (
 __all__ = [
     "train",
     "TrainResult",
-    # Re-exported from loading and evaluation, where they live, for existing callers.
-    "load_data",
+    "load_data",  # re-exported from loading and evaluation, where they live, for old callers
     "config_model",
     "initial_model",
     "check_resources",
@@ -80,10 +79,12 @@ class _Observers:
     tensorboard: TensorBoardLog
     progress: ProgressLines
     snapshots: Snapshots
+    extra: tuple[Callback, ...] = ()  # the caller's own (`train`'s `callbacks`), after these
 
     @property
     def callbacks(self) -> CallbackList:
-        return CallbackList([self.scores, self.tensorboard, self.progress, self.snapshots])
+        own = [self.scores, self.tensorboard, self.progress, self.snapshots]
+        return CallbackList(own + list(self.extra))
 
     @property
     def say(self) -> Printer:
@@ -251,6 +252,7 @@ def train(
     checkpoint: str | pathlib.Path | None = None,
     say: Printer | None = None,
     bars: TextIO | None = None,
+    callbacks: tuple[Callback, ...] = (),
 ) -> TrainResult:
     """Run the configured identification end to end; returns the fitted model and metrics.
 
@@ -261,7 +263,7 @@ def train(
     `resume`, continue from the last completed pass snapshot in `run_dir` (the result equals an
     uninterrupted run's). Ctrl-C raises `RunInterrupted` naming the run to resume. `say`
     prints the progress lines (default: stderr); `bars` is a stream for tqdm progress bars
-    (a terminal; default none).
+    (a terminal; default none); `callbacks`: more `Callback`s, called after the run's own.
     """
     say = say or _default_say
     torch.manual_seed(cfg.seed)
@@ -276,7 +278,7 @@ def train(
     claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)
     with locked(*([claim.replaces] if claim.replaces else []), claim.path):
         try:
-            result = run.run_in(claim)
+            result = run.run_in(claim, callbacks)
         except KeyboardInterrupt:
             snap = latest_snapshot(claim.path)
             label = snapshot_label(snap)
@@ -286,9 +288,7 @@ def train(
                 else "no pass had completed yet"
             )
             raise RunInterrupted(
-                f"interrupted: {where}",
-                run_dir=claim.path if snap else None,
-                last=label,
+                f"interrupted: {where}", run_dir=claim.path if snap else None, last=label
             ) from None
     if checkpoint is not None:
         save_checkpoint(checkpoint, read_checkpoint(result.checkpoint))
@@ -324,7 +324,7 @@ class _Run:
             (None, "resume") if resume else initial_model(cfg, self.train, base)
         )
 
-    def run_in(self, claim: RunDir) -> TrainResult:
+    def run_in(self, claim: RunDir, callbacks: tuple[Callback, ...] = ()) -> TrainResult:
         """The run itself, in the claimed and locked directory `claim.path`."""
         run = claim.path
         atomic_write_text(run / "config.toml", self.cfg.to_toml())
@@ -337,6 +337,7 @@ class _Run:
         try:
             model, est = self._starting_point()
             obs = self._observers(run, writer, model)
+            obs.extra = tuple(callbacks)
             if est is None:
                 self._log_start(obs, model)
             try:
