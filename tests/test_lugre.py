@@ -222,3 +222,25 @@ def test_bad_dynamic_values_are_refused():
         ArmModel(make_friction("tanh", 2), dynamic="dahl")
     with pytest.raises(TorchfricError, match="sigma0 must be > 0"):
         ArmModel(make_friction("tanh", 2), dynamic="lugre", sigma0=0.0)
+
+
+def test_filter_health_reads_theta_after_the_bristle_state():
+    """The EKF's box check and its message see θ after [q, q̇, z]: a large z is not a parameter,
+    and a parameter out of the box is named by its own index."""
+    from torchfric.estimators.ekf import EKFState, Innovation, _check, healthy
+
+    model = random_tanh(6, size=2)
+    flow = make_propagator(model, 1)
+    assert flow.states == 3
+    n = 3 + model.num_parameters
+    P = torch.eye(n, dtype=F64)
+    inn = Innovation(torch.zeros(2, dtype=F64), torch.eye(2, dtype=F64),
+                     torch.tensor(1.0, dtype=F64), torch.tensor(0.0, dtype=F64))  # fmt: skip
+    bound = torch.tensor(1e6, dtype=F64)
+    x = torch.cat([torch.tensor([0.0, 0.0, 2e6], dtype=F64), model.get_theta()])
+    assert (
+        bool(healthy(EKFState(x, P), inn, bound, 3)) and _check(EKFState(x, P), inn, 1e6, 3) is None
+    )
+    x[3 + 1] = 3e6  # θ[1]
+    assert not bool(healthy(EKFState(x, P), inn, bound, 3))
+    assert _check(EKFState(x, P), inn, 1e6, 3).startswith("parameter 1 left the box")

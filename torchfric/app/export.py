@@ -36,12 +36,11 @@ from torch import Tensor, nn
 
 from ..errors import TorchfricError
 from ..files import atomic_write_bytes
-from ..models.arm import ArmModel, arm_field, arm_friction
+from ..models.arm import ArmModel, arm_field, arm_friction, external_torque
 from ..models.lugre import (
     LUGRE_NAMES,
     bristle_field,
     bristle_solve,
-    external_torque,
     positive_level,
 )
 from ..models.simulate import SOLVERS, bristle_stiffness, friction_stiffness

@@ -236,6 +236,7 @@ def make_step(
     (benchmarks compare the two).
     """
     mm = mm or getattr(flow, "mm", fused_matmul)
+    states = getattr(flow, "states", 2)  # entries of x before θ (3 with a bristle state)
 
     def eager(
         x: Tensor,
@@ -249,13 +250,15 @@ def make_step(
         bound: Tensor,
     ):  # type: ignore[no-untyped-def]
         state, inn = step(EKFState(x, P), u, y, dt, Q, H, R, flow, mm)
-        return state.x, state.P, inn.e, inn.nis, inn.loglik, healthy(state, inn, bound)
+        return state.x, state.P, inn.e, inn.nis, inn.loglik, healthy(state, inn, bound, states)
 
     if not compile:
-        return Step(eager)
-    # carry: (x, P); per-sample outputs: (e, nis, loglik, ok)
-    return compile_step(eager, carry=2, size=chunk, options=chunk_options(mm), native=native,
-                        key=step_key("ekf step", getattr(flow, "key", None), product_name(mm)))  # fmt: skip
+        out = Step(eager)
+    else:  # carry: (x, P); per-sample outputs: (e, nis, loglik, ok)
+        out = compile_step(eager, carry=2, size=chunk, options=chunk_options(mm), native=native,
+                           key=step_key("ekf step", getattr(flow, "key", None), product_name(mm)))  # fmt: skip
+    out.states = states  # type: ignore[attr-defined]  # for run_pass's messages
+    return out
 
 
 @dataclass
@@ -278,8 +281,9 @@ class FilterFailure(Exception):
         self.state = state
 
 
-def healthy(state: EKFState, inn: Innovation, bound: Tensor) -> Tensor:
-    """0-d bool: finite belief, finite NIS (S positive definite), no negative variance, θ in box."""
+def healthy(state: EKFState, inn: Innovation, bound: Tensor, states: int = 2) -> Tensor:
+    """0-d bool: finite belief, finite NIS (S positive definite), no negative variance, θ (the
+    entries after the first `states`) in its box."""
     x, P = state
     d = torch.diagonal(P)
     return (
@@ -287,11 +291,11 @@ def healthy(state: EKFState, inn: Innovation, bound: Tensor) -> Tensor:
         & torch.isfinite(P).all()
         & torch.isfinite(inn.nis)
         & (d >= -1e-9 * (1.0 + d.abs().max())).all()
-        & (x[2:].abs() <= bound).all()
+        & (x[states:].abs() <= bound).all()
     )
 
 
-def _check(state: EKFState, inn: Innovation, theta_bound: float) -> str | None:
+def _check(state: EKFState, inn: Innovation, theta_bound: float, states: int = 2) -> str | None:
     """Reason the belief is unusable, or None. Cheap enough for every sample in eager mode."""
     x, P = state
     if not bool(torch.isfinite(x).all()):
@@ -302,9 +306,10 @@ def _check(state: EKFState, inn: Innovation, theta_bound: float) -> str | None:
         return "the innovation covariance S is not positive definite"
     if bool((torch.diagonal(P) < -1e-9 * (1.0 + torch.diagonal(P).abs().max())).any()):
         return "the covariance P is not positive semi-definite (negative variance)"
-    if bool((x[2:].abs() > theta_bound).any()):
-        j = int((x[2:].abs() > theta_bound).nonzero()[0, 0])
-        return f"parameter {j} left the box |θ| <= {theta_bound:g} (value {float(x[2 + j]):.4g})"
+    theta = x[states:]
+    if bool((theta.abs() > theta_bound).any()):
+        j = int((theta.abs() > theta_bound).nonzero()[0, 0])
+        return f"parameter {j} left the box |θ| <= {theta_bound:g} (value {float(theta[j]):.4g})"
     return None
 
 
@@ -332,12 +337,13 @@ def run_pass(
     the eager step to name the sample and keep the belief before it.
     """
     stats = PassStats(sum_e2=torch.zeros(y.shape[1], dtype=torch.float64))
+    states = getattr(step_fn, "states", 2)
     sum_e2 = torch.zeros(y.shape[1], dtype=torch.float64)
     sum_nis = torch.zeros((), dtype=torch.float64)
     loglik = torch.zeros((), dtype=torch.float64)
     if not continuing:
         new_state, inn = update(state, y[0], H, R)
-        reason = _check(new_state, inn, theta_bound)
+        reason = _check(new_state, inn, theta_bound, states)
         if reason:
             raise FilterFailure(sample_offset, reason, state)
         state = new_state
@@ -362,7 +368,7 @@ def run_pass(
             x, P, e, nis, ll, ok = step_fn(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
             # Checked every sample (one sync), so a failure names the exact sample.
             if not bool(ok):
-                reason = _failure_reason(x, P, e, nis, ll, theta_bound)
+                reason = _failure_reason(x, P, e, nis, ll, theta_bound, states)
                 raise FilterFailure(sample_offset + k, reason or _UNHEALTHY, state)
             state = EKFState(x, P)
             sum_e2 = sum_e2 + e * e
@@ -379,10 +385,10 @@ _UNHEALTHY = "the filter became unhealthy"
 
 
 def _failure_reason(
-    x: Tensor, P: Tensor, e: Tensor, nis: Tensor, ll: Tensor, theta_bound: float
+    x: Tensor, P: Tensor, e: Tensor, nis: Tensor, ll: Tensor, theta_bound: float, states: int
 ) -> str | None:
     """`_check`'s message for one step's outputs (None when every check passes)."""
-    return _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound)
+    return _check(EKFState(x, P), Innovation(e, e.new_empty(0), nis, ll), theta_bound, states)
 
 
 def _replay_failure(
@@ -407,7 +413,7 @@ def _replay_failure(
     eager = step_fn.eager  # type: ignore[attr-defined]
     for k in range(k0, k0 + bad + 1):
         x, P, e, nis, ll, ok = eager(state.x, state.P, u[k - 1], y[k], dt, Q, H, R, bound)
-        reason = _failure_reason(x, P, e, nis, ll, theta_bound)
+        reason = _failure_reason(x, P, e, nis, ll, theta_bound, getattr(step_fn, "states", 2))
         if reason or k == k0 + bad:
             raise FilterFailure(sample_offset + k, reason or _UNHEALTHY, state)
         state = EKFState(x, P)

@@ -48,7 +48,7 @@ from ..accel import (
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from .ekf import EKFState, MatMul, StepFn, make_propagator, make_step, matmul_for, update
+from .ekf import EKFState, MatMul, StepFn, make_propagator, make_step, update
 from .observers import Callback, EnsembleCallback
 from .passes import (
     DIVERGED,
@@ -131,6 +131,7 @@ def make_batched_step(
     batched = vmap(make_step(flow), in_dims=(0, 0, None, None, None, 0, None, 0, None))
     out = compile_with_fallback(batched) if compile else batched
     out.key = step_key("batched step", flow.key, product_name(flow.mm))  # type: ignore[attr-defined]
+    out.mm = flow.mm  # type: ignore[attr-defined]
     return out
 
 
@@ -157,8 +158,8 @@ def make_masked_step(
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
     (`torchfric.native`: one member traced, four per SIMD vector, split across the cores); else,
     or when that path cannot translate the model, the Inductor scan of the vmapped step."""
-    mm = mm or matmul_for(model.state_size + model.num_parameters)
     batched = make_batched_step(model, substeps, mm=mm)
+    mm = batched.mm  # type: ignore[attr-defined]  # the filter's product (`matmul_for` by default)
     key = step_key("ensemble masked step", batched.key)  # type: ignore[attr-defined]
 
     def masked(
@@ -231,7 +232,7 @@ def _first_sample(carry: tuple[Tensor, ...], y0: Tensor, f: Filtering) -> tuple[
         torch.isfinite(nis)
         & torch.isfinite(x1).all(1)
         & torch.isfinite(P1).flatten(1).all(1)
-        & (x1[:, 2:].abs() <= f.theta_bound).all(1)
+        & (x1[:, f.states :].abs() <= f.theta_bound).all(1)
     )
     return _keep_good(carry, 0, x1, P1, e, nis, ll, ok)
 
@@ -417,7 +418,7 @@ def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
             )
         samples += exp.n
         f.callback.on_progress(p, samples, f.total)
-        s = f.P0_xx.shape[0]  # states before θ (3 with a bristle state)
+        s = f.states
         theta = torch.where(good[:, None], x[:, s:], theta)
         P_theta = torch.where(good[:, None, None], P[:, s:, s:], P_theta)
     return PassSums(theta, P_theta, P, *sums, samples, failures)

@@ -101,7 +101,7 @@ def _filter_pass(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
             state, stats = _filter_with_progress(EKFState(x[0], P[0]), u, y, dt, f, p, samples)
         except FilterFailure as fail:
             raise _divergence(fail, p, exp, ledger) from None
-        s = f.P0_xx.shape[0]  # states before θ
+        s = f.states
         theta, P_theta = state.x[s:].clone()[None], state.P[s:, s:].clone()[None]
         sum_e2 += stats.sum_e2
         sum_nis += stats.sum_nis

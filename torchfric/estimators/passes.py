@@ -52,6 +52,7 @@ __all__ = [
     "measurements",
     "measured_data",
     "initial_belief",
+    "belief",
 ]
 
 RUNNING, CONVERGED, ROLLED_BACK, DIVERGED = "running", "converged", "rolled_back", "diverged"
@@ -113,6 +114,11 @@ class Filtering:
     callback: Callback
     every: int  # samples between progress reports (where the filter reports per sample)
     total: int  # samples per pass
+
+    @property
+    def states(self) -> int:
+        """Entries of the belief before θ: 2, or 3 with a bristle state."""
+        return self.P0_xx.shape[0]
 
 
 @dataclass
@@ -335,10 +341,16 @@ def initial_belief(
     """The belief at the start of `exp` for K members: ``x = [q_0, q̇_0, θ]`` `(K, n)` (q̇_0 = 0
     without a velocity) and P `(K, n, n)` with ``P_xx = P0_xx``, ``P_θθ`` carried, cross terms
     zero. A dynamic model's P0_xx `(3, 3)` adds its bristle state, started at rest (z = 0)."""
+    x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
+    return belief(x0.to(torch.float64), theta, P_theta, P0_xx)
+
+
+def belief(x0: Tensor, theta: Tensor, P_theta: Tensor, P0_xx: Tensor) -> tuple[Tensor, Tensor]:
+    """``x = [x0, 0…, θ]`` `(K, n)` and block-diagonal ``P = diag(P0_xx, P_θθ)`` `(K, n, n)` for
+    K members' θ `(K, k)`: `x0` holds [q, q̇]; the states after them (z) start at 0."""
     K, k = theta.shape
     s = P0_xx.shape[0]
-    x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
-    x0 = torch.cat([x0.to(torch.float64), x0.new_zeros(s - 2, dtype=torch.float64)])
+    x0 = torch.cat([x0, x0.new_zeros(s - x0.numel())])
     x = torch.cat([x0.expand(K, s), theta], dim=1)
     P = torch.zeros(K, s + k, s + k, dtype=torch.float64)
     P[:, :s, :s] = P0_xx

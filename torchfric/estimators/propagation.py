@@ -93,6 +93,7 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]
+    propagate.states = model.state_size  # type: ignore[attr-defined]  # entries of x before θ
     # what its code depends on (part of `compile_step`'s key); None for an unnamed product
     propagate.key = step_key(  # type: ignore[attr-defined]
         "rk4-3/8 propagator", structure_key(model), substeps, product_name(mm)
@@ -121,6 +122,7 @@ def _stepped_propagator(model: ArmModel, substeps: int, mm: MatMul) -> Propagato
         return x, Phi
 
     propagate.mm = mm  # type: ignore[attr-defined]
+    propagate.states = model.state_size  # type: ignore[attr-defined]  # entries of x before θ
     propagate.key = step_key(  # type: ignore[attr-defined]
         "bristle propagator", structure_key(model), substeps, product_name(mm)
     )

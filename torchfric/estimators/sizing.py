@@ -261,7 +261,7 @@ def _fixed_loglik(model: ArmModel, tuning: EKFTuning, ledger: PassLedger, f: Fil
     with its kept θ held fixed; −inf for a member without a completed pass or whose pass
     fails."""
     K, k = ledger.theta.shape
-    s = f.P0_xx.shape[0]  # states before θ
+    s = f.states
     Q = f.Q.clone()
     Q[:, s:, s:] = 0.0  # no process noise on θ either: it stays where it is
     zero = torch.zeros(K, k, k, dtype=torch.float64)

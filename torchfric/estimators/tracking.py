@@ -31,10 +31,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..accel import iter_chunks
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from .ekf import MEASUREMENTS, EKFState, make_propagator, make_step, update
-from .passes import measurements
+from .passes import belief, measurements
 from .settings import EKFTuning
 
 __all__ = [
@@ -197,7 +198,7 @@ class Tracker:
         every: int = 100,
         compile: bool = True,
     ) -> None:
-        self.model, self.settings, self.tuning, self.every = model, settings, tuning, every
+        self.settings, self.tuning, self.every = settings, tuning, every
         k, s = model.num_parameters, model.state_size
         Q, P0_xx, self.H, self.R = tuning.matrices(k, s)
         Q[s:, s:] = Q[s:, s:] + settings.q_theta * torch.eye(k, dtype=torch.float64)
@@ -214,16 +215,13 @@ class Tracker:
         self.samples = 0
 
     def _start(self, y0: Tensor) -> None:
-        """The belief at the first sample: [q0, q̇0 (measured or 0), z = 0, θ], then an update."""
-        k, s = self.theta0.numel(), self.states
-        x = torch.zeros(s + k, dtype=torch.float64)
+        """The belief at the first sample (`passes.belief`: [q0, q̇0 as measured, else 0; z = 0;
+        θ]), then an update."""
+        x0 = torch.zeros(2, dtype=torch.float64)
         for j, i in enumerate(MEASUREMENTS[self.tuning.measure]):
-            x[i] = y0[j]  # the measured entries of [q, q̇]; the others start at 0
-        x[s:] = self.theta0
-        P = torch.zeros(s + k, s + k, dtype=torch.float64)
-        P[:s, :s] = self.P0_xx
-        P[s:, s:] = self._P_theta0
-        self.state, _ = update(EKFState(x, P), y0, self.H, self.R)
+            x0[i] = y0[j]  # the measured entries of [q, q̇]
+        x, P = belief(x0, self.theta0[None], self._P_theta0[None], self.P0_xx)
+        self.state, _ = update(EKFState(x[0], P[0]), y0, self.H, self.R)
 
     def run(self, t: Tensor, u: Tensor, y: Tensor) -> Iterator[TrackRow]:
         """Filter the samples ``(t, u, y)`` that follow those already seen (u held over each
@@ -235,18 +233,14 @@ class Tracker:
         else:
             u_prev = torch.cat([self._u_last, u[:-1]])
         self._u_last = u[-1:].clone()
-        n = y.shape[0]
-        for i in range(0, n, self.every):
-            m = min(self.every, n - i)
-            yield self._chunk(t[i : i + m], u_prev[i : i + m], y[i : i + m])
+        for i, m, xs, valid in iter_chunks((u_prev, y), self.every):
+            yield self._chunk(t[i : i + m], xs, valid)
 
-    def _chunk(self, t: Tensor, u: Tensor, y: Tensor) -> TrackRow:
+    def _chunk(self, t: Tensor, xs: tuple[Tensor, Tensor], valid: Tensor) -> TrackRow:
+        """One chunk: `t` the times of its real samples, `xs` = (u, y) padded to `every` rows
+        (`iter_chunks`), `valid` marking the real ones."""
         assert self.state is not None
-        C = self.every
-        valid = torch.zeros(C, dtype=torch.bool)
-        valid[: len(t)] = True
-        pad = C - len(t)
-        xs = (torch.nn.functional.pad(u, (0, pad)), torch.nn.functional.pad(y, (0, 0, 0, pad)))
+        u, y = xs
         consts = (self.dt, self.Q, self.H, self.R, self.bound)
         chunk = getattr(self.step, "chunk", None)
         if chunk is not None:

@@ -24,13 +24,13 @@ from ..errors import TorchfricError
 from .friction import Friction, make_friction
 from .lugre import DYNAMICS, LUGRE_NAMES, lugre_field, lugre_substep, sliding_curve
 
-__all__ = ["ArmModel", "arm_field", "arm_friction"]
+__all__ = ["ArmModel", "arm_field", "arm_friction", "external_torque"]
 
 
 # The arm's physics, written once. `ArmModel.dynamics` (simulation, EKF, output error, pre-fit)
 # and `ArmModel.friction_torque` call these, and so does the TorchScript export
-# (`torchfric.export`), which compiles them with the module: a term added here reaches every
-# consumer. They are TorchScript-compatible plain functions (not scripted: autograd, torch.func
+# (`torchfric.export`), which compiles them with the module: a term added here (in `arm_field`,
+# `arm_friction` and, for dynamic models, `external_torque`) reaches every consumer. They are TorchScript-compatible plain functions (not scripted: autograd, torch.func
 # and the native tracer see ordinary torch operations). Disabled terms are ``None`` (not zero),
 # so that a model without a term computes exactly what it always did.
 
@@ -71,6 +71,27 @@ def arm_field(
     if asymmetric is not None:
         torque = torque - asymmetric * v.abs()
     return torch.stack([v, torque / inertia], dim=-1)
+
+
+def external_torque(
+    x: Tensor,
+    u: Tensor,
+    c_m: Tensor,
+    offset: Tensor | None = None,
+    gravity: Tensor | None = None,
+    asymmetric: Tensor | None = None,
+) -> Tensor:
+    """The torque of a dynamic model besides its bristles and b q̇: ``c_m u − offset − g_c sin q
+    − a |q̇|``, the white-box terms of `arm_field` (a term added there goes here too; kept apart,
+    not shared, so that a static model's sums keep their order to the last bit)."""
+    torque = c_m * u
+    if offset is not None:
+        torque = torque - offset
+    if gravity is not None:
+        torque = torque - gravity * torch.sin(x[..., 0])
+    if asymmetric is not None:
+        torque = torque - asymmetric * x[..., 1].abs()
+    return torque
 
 
 def arm_friction(
@@ -287,7 +308,7 @@ class ArmModel(nn.Module):
         of inner loops, where θ is constant. A dynamic model's field (`lugre_field`) is stiff:
         simulation and the EKF step it with `substep`."""
         if self.dynamic == "lugre":
-            return lugre_field(self.friction, x, u, fric, arm)
+            return lugre_field(self.friction, x, _external(x, u, arm), fric, arm)
         return arm_field(
             x,
             u,
@@ -309,7 +330,7 @@ class ArmModel(nn.Module):
         arm: dict[str, Tensor],
     ) -> Tensor:
         """One step of a dynamic model's stiff-stable integrator (`lugre_substep`), `x (..., 3)`."""
-        return lugre_substep(self.friction, x, u, h, fric, arm)
+        return lugre_substep(self.friction, x, _external(x, u, arm), h, fric, arm)
 
     def black_box(self, v: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]) -> Tensor:
         """The velocity-dependent part of the (steady-state) friction besides the white-box
@@ -455,6 +476,13 @@ class ArmModel(nn.Module):
                 else {}
             ),
         )
+
+
+def _external(x: Tensor, u: Tensor, arm: dict[str, Tensor]) -> Tensor:
+    """`external_torque` with the terms of a split θ (`ArmModel.split`)."""
+    return external_torque(
+        x, u, arm["c_m"], arm.get("offset"), arm.get("gravity"), arm.get("asymmetric")
+    )
 
 
 _TINY = 5e-324  # smallest positive double

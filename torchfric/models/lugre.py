@@ -39,10 +39,8 @@ from .friction import Friction
 __all__ = [
     "DYNAMICS",
     "LUGRE_NAMES",
-    "LEVEL_FLOOR",
     "bristle_field",
     "bristle_solve",
-    "external_torque",
     "positive_level",
     "sliding_level",
     "sliding_curve",
@@ -56,14 +54,12 @@ LUGRE_NAMES: tuple[str, str, str] = ("lugre_sigma0", "lugre_sigma1", "lugre_vsti
 # `model.dynamic` values: "none" (the static arm, state [q, q̇]) and "lugre" ([q, q̇, z]).
 DYNAMICS: tuple[str, ...] = ("none", "lugre")
 
-# ε of g = sqrt(C² + ε²) [torque]: far below any physical friction level, yet g > 0 where a
-# curve crosses zero, so the bristle rate σ0 |q̇| / g stays finite.
-LEVEL_FLOOR = 1e-9
-
 
 def positive_level(c: Tensor) -> Tensor:
-    """``g = sqrt(c² + ε²) > 0`` from the curve's value c at ``s = max(|v|, v_s)``."""
-    return torch.sqrt(c * c + 1e-18)  # ε² = LEVEL_FLOOR² (a literal: TorchScript reads no globals)
+    """``g = sqrt(c² + ε²) > 0`` from the curve's value c at ``s = max(|v|, v_s)``. ε = 1e-9
+    (torque) is far below any physical friction level, yet keeps g > 0 where a curve crosses zero,
+    so the bristle rate σ0 |q̇| / g stays finite; a literal, as TorchScript reads no globals."""
+    return torch.sqrt(c * c + 1e-18)
 
 
 def sliding_level(
@@ -84,25 +80,6 @@ def sliding_curve(
 
 # The functions below are TorchScript-compatible (tensors and optional tensors only): the
 # exported module (`torchfric.app.export`) compiles them, so its steps are these very ones.
-
-
-def external_torque(
-    x: Tensor,
-    u: Tensor,
-    c_m: Tensor,
-    offset: Tensor | None = None,
-    gravity: Tensor | None = None,
-    asymmetric: Tensor | None = None,
-) -> Tensor:
-    """The torque besides the bristles and b q̇: ``c_m u − offset − g_c sin q − a |q̇|``."""
-    torque = c_m * u
-    if offset is not None:
-        torque = torque - offset
-    if gravity is not None:
-        torque = torque - gravity * torch.sin(x[..., 0])
-    if asymmetric is not None:
-        torque = torque - asymmetric * x[..., 1].abs()
-    return torque
 
 
 def bristle_field(
@@ -175,37 +152,31 @@ def bristle_solve(
 
 
 def lugre_field(
-    friction: Friction, x: Tensor, u: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]
+    friction: Friction, x: Tensor, f: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]
 ) -> Tensor:
-    """The continuous vector field of the model `(..., 3)` (`bristle_field`; stiff: for
-    reference and tests, integrate it with `lugre_substep`)."""
-    f = _external(x, u, arm)
+    """The continuous vector field of the model `(..., 3)` under the external torque `f`
+    (`torchfric.models.arm.external_torque`; `bristle_field`; stiff: for reference and tests,
+    integrate it with `lugre_substep`)."""
     g = sliding_level(friction, x[..., 1], fric, arm["lugre_vstick"])
     return bristle_field(
         x, f, g, arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
     )
 
 
-def _external(x: Tensor, u: Tensor, arm: dict[str, Tensor]) -> Tensor:
-    return external_torque(
-        x, u, arm["c_m"], arm.get("offset"), arm.get("gravity"), arm.get("asymmetric")
-    )
-
-
 def lugre_substep(
     friction: Friction,
     x: Tensor,
-    u: Tensor,
+    f: Tensor,
     h: Tensor | float,
     fric: dict[str, Tensor],
     arm: dict[str, Tensor],
 ) -> Tensor:
-    """One sub-step of length `h` with held input `u` from states `x (..., 3)` = [q, q̇, z]:
+    """One sub-step of length `h` from states `x (..., 3)` = [q, q̇, z] under the external torque
+    `f` (`torchfric.models.arm.external_torque`, held over the step):
     the exponential bristle update with the rate at the midpoint velocity (predicted by a first
     solve with the rate at q̇), the momentum balance linear in the new velocity,
     ``q1 = q + h (v + v1)/2``."""
     v = x[..., 1]
-    f = _external(x, u, arm)
     h = torch.as_tensor(h, dtype=x.dtype)
     s0, s1, M, b = arm["lugre_sigma0"], arm["lugre_sigma1"], arm["inertia"], arm.get("viscous")
     vs = arm["lugre_vstick"]

@@ -232,7 +232,8 @@ def simulate(
         u: `(N,)` input, or `(N, B)` for a batch of B runs.
         x0: `(2,)` initial ``[q, q̇]``, or `(B, 2)`; a dynamic model starts its bristle state
             at the steady deflection of q̇ (`full_state`), or takes `(…, 3)` ``[q, q̇, z]``.
-        method: fixed-grid solver, one of `SOLVERS` ("rk4" default).
+        method: fixed-grid solver, one of `SOLVERS` ("rk4" default); a dynamic model always
+            takes its own stiff-stable step (`solver_step`), whatever the method.
         substeps: solver steps per sample interval, or "auto" (`auto_substeps`).
         theta: optional θ `(k,)` in estimation coordinates (default: the model's own, differentiable).
         engine: "odeint" (torchdiffeq, default) or "compiled" (`ENGINES`: the same rk4 steps as
@@ -258,7 +259,10 @@ def simulate(
             f"u has {u.shape[0]} samples but t has {t.numel()}; give one input per sample"
         )
     if x0.shape[-1] not in (2, model.state_size):
-        raise TorchfricError(f"x0 must end in 2 entries [q, qdot], got shape {tuple(x0.shape)}")
+        whole = " or 3 [q, qdot, z]" if model.state_size == 3 else ""
+        raise TorchfricError(
+            f"x0 must end in 2 entries [q, qdot]{whole}, got shape {tuple(x0.shape)}"
+        )
     if not bool((t[1:] > t[:-1]).all()):
         raise TorchfricError("t must be strictly increasing")
     if theta is not None and theta.shape[-1] != model.num_parameters:
