@@ -26,12 +26,12 @@ import sys
 import tempfile
 import time
 
-import numpy as np
 import torch
 
 import torchfric
 from torchfric import ArmModel, make_friction, simulate
 from torchfric.data.rig import RigParameters, rig_experiment
+from torchfric.estimators.metrics import fit_percent, friction_curve_error
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "experiments" / "configs" / "arm_lugre_ekf.toml"
@@ -49,10 +49,10 @@ ROWS: list[tuple[str, dict]] = [
 
 def _fit_q(model: ArmModel, name: str) -> float:
     arr = rig_experiment(name, seed=0)
-    t, u, q = torch.tensor(arr["t"]), torch.tensor(arr["u"]), arr["q"]
+    t, u = torch.tensor(arr["t"]), torch.tensor(arr["u"])
     with torch.no_grad():
         x = simulate(model, t, u, torch.zeros(2, dtype=torch.float64), engine="compiled")
-    return float(100 * (1 - np.linalg.norm(x[:, 0].numpy() - q) / np.linalg.norm(q - q.mean())))
+    return fit_percent(torch.tensor(arr["q"]), x[:, 0])
 
 
 def ceilings() -> dict[str, float]:
@@ -74,8 +74,7 @@ def curve_error(model: ArmModel, truth: RigParameters, v_max: float = 10.0) -> f
     v = torch.linspace(-v_max, v_max, 2001, dtype=torch.float64)
     v = v[v.abs() > 0.05]  # the true curve jumps at 0; a continuous model cannot follow there
     with torch.no_grad():
-        err = model.friction_torque(v) - truth.steady_state_friction(v)
-    return float(err.pow(2).mean().sqrt() / truth.steady_state_friction(v).abs().max() * 100)
+        return 100 * friction_curve_error(model, v, truth.steady_state_friction(v))
 
 
 def run_row(label: str, model_keys: dict, out: pathlib.Path) -> dict:

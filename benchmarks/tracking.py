@@ -37,6 +37,7 @@ import torch
 
 from torchfric import load_checkpoint
 from torchfric.data.rig import RigParameters, changing_record, excitation, simulate_rig
+from torchfric.estimators.metrics import friction_curve_error
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "checkpoints" / "arm_tanh_ekf.pt"
@@ -62,9 +63,7 @@ def curve_error(model, truth: RigParameters) -> float:  # type: ignore[no-untype
     v = torch.linspace(-8.0, 8.0, 1601, dtype=torch.float64)
     v = v[v.abs() > 0.05]
     with torch.no_grad():
-        ref = truth.steady_state_friction(v)
-        err = model.friction_torque(v) - ref
-    return float(err.pow(2).mean().sqrt() / ref.abs().max() * 100)
+        return 100 * friction_curve_error(model, v, truth.steady_state_friction(v))
 
 
 def main(argv: list[str] | None = None) -> int:

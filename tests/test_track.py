@@ -165,6 +165,7 @@ def test_follow_reads_a_growing_file(tmp_path) -> None:  # type: ignore[no-untyp
         (["--every", "0"], "--every must be an integer >= 1"),
         (["--set", "track.forgetting=2"], "track.forgetting = 2.0 is out of range"),
         (["--set", "track.qtheta=1"], 'unknown key "track.qtheta"'),
+        (["--set", "data.input_delay=3"], "torchfric track takes track.* and estimator.* keys"),
     ],
 )
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, extra, message) -> None:  # type: ignore[no-untyped-def]

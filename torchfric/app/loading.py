@@ -170,7 +170,8 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
 def _bristles(m: Any, v_scale: float) -> dict[str, Any]:
     """The dynamic-friction arguments of `ArmModel` from `[model]` (none for a static model);
     σ1 unset is critically damped, ``2 sqrt(σ0 M)``; the stick velocity unset is 1 % of the
-    velocity scale (the data's 95th percentile of |q̇| when that is unset too)."""
+    velocity scale (for tanh and polytopic the data's 95th percentile of |q̇| when
+    `model.velocity_scale` is unset too; for the baselines `model.velocity_scale`, else 1))."""
     if m.dynamic == "none":
         return {}
     sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(m.sigma0 * m.inertia)

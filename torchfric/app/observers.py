@@ -255,9 +255,9 @@ class TensorBoardLog(Callback):
                 ("max", inertia[-1]),
             ):
                 self.writer.add_scalar(f"ensemble/inertia_{tag}", v, pass_index)
-        lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
-        if lls:
-            self.writer.add_scalar("ensemble/loglik_best", max(lls), pass_index)
+        best = best_member_loglik(state, pass_index)
+        if best is not None:
+            self.writer.add_scalar("ensemble/loglik_best", best, pass_index)
         self.log_members(pass_index, state["histories"])
         self.writer.flush()
         return None
@@ -433,3 +433,10 @@ class ProgressLines(Callback):
                 f"inertia {record.parameters['inertia']:.6g}" + (f", {text}" if text else "") + "\n"
             )
         return None
+
+
+def best_member_loglik(state: dict[str, Any], pass_index: int) -> float | None:
+    """The best innovation log-likelihood of an ensemble's members that ran pass `pass_index`
+    (`EnsembleCallback.on_ensemble_pass_end`'s `state`); None when none did."""
+    lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
+    return max(lls) if lls else None

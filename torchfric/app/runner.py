@@ -35,7 +35,7 @@ from .observers import Printer, ProgressLines, TensorBoardLog, ValidationScores,
 from .outcome import kept_pass, kept_payload, parameter_table
 from .report import write_report
 from .rundir import RunDir, claim_run_dir, locked
-from .sizing import choose_size
+from .sizing import choose_size_and_start
 from .snapshots import (
     Snapshots,
     ekf_payload,
@@ -316,12 +316,12 @@ class _Run:
         """Load the data, size "auto", check memory and build the initial model (not on resume)."""
         cfg = self.cfg
         self.train, self.val, self.test, self.fingerprints = load_data(cfg, warnings=self.warnings)
-        cfg, self.sizes = choose_size(cfg, self.train, self.say)  # model.size = "auto"
+        cfg, self.sizes, start = choose_size_and_start(cfg, self.train, self.say)  # size "auto"
         base = config_model(cfg, self.train)
         check_resources(cfg, self.train, base)
         resume = self.saved is not None
         self.model, self.init_kind = (
-            (None, "resume") if resume else initial_model(cfg, self.train, base)
+            (None, "resume") if resume else start or initial_model(cfg, self.train, base)
         )
 
     def run_in(self, claim: RunDir, callbacks: tuple[Callback, ...] = ()) -> TrainResult:

@@ -26,7 +26,7 @@ from .config import Config
 from .loading import check_resources, config_model, initial_model
 from .sections import AUTO_SIZES
 
-__all__ = ["choose_size", "candidate_sizes", "size_lines", "sized"]
+__all__ = ["choose_size", "choose_size_and_start", "candidate_sizes", "size_lines", "sized"]
 
 
 def candidate_sizes(cfg: Config) -> tuple[int, ...]:
@@ -43,12 +43,22 @@ def choose_size(
     cfg: Config, train: list[Any], say: Callable[[str], None] | None = None
 ) -> tuple[Config, dict[str, Any] | None]:
     """`cfg` with its size chosen from the identification records `train`, and the table of
-    sizes (`SizingResult.to_dict`); `cfg` itself and None when ``model.size`` is an integer.
+    sizes (`SizingResult.to_dict`); `cfg` itself and None when ``model.size`` is an integer
+    (`choose_size_and_start` without the start)."""
+    return choose_size_and_start(cfg, train, say)[:2]
+
+
+def choose_size_and_start(
+    cfg: Config, train: list[Any], say: Callable[[str], None] | None = None
+) -> tuple[Config, dict[str, Any] | None, tuple[Any, str] | None]:
+    """`choose_size`, and the chosen size's start (`initial_model`'s model and kind, already
+    built for the comparison, so a run need not pre-fit it again); None when ``model.size`` is
+    an integer.
 
     Raises `TorchfricError` before any filter runs when a size's model or the batch of all
     sizes' filters does not fit in memory, and when every filter of every size diverges."""
     if cfg.model.size != "auto":
-        return cfg, None
+        return cfg, None, None
     say = say or (lambda _: None)
     sizes = candidate_sizes(cfg)
     starts = {}
@@ -56,13 +66,14 @@ def choose_size(
         one = sized(cfg, size)
         base = config_model(one, train)
         check_resources(one, train, base)
-        starts[size] = initial_model(one, train, base)[0]
+        starts[size] = initial_model(one, train, base)
     est = cfg.estimator
     spec = est.ensemble_spec(cfg.seed) if est.ensemble > 0 else None
     per_size = spec.size if spec is not None else 1
-    batched = len(sizes) > 1 and nests(starts)
+    models = {size: start[0] for size, start in starts.items()}
+    batched = len(sizes) > 1 and nests(models)
     filters = per_size * (len(sizes) if batched else 1)
-    largest = max(m.num_parameters for m in starts.values())
+    largest = max(m.num_parameters for m in models.values())
     require_memory(
         ekf_bytes(largest, filters),
         f'model.size = "auto": {filters} filters of up to {largest} parameters',
@@ -74,11 +85,11 @@ def choose_size(
         f'  model.size = "auto": {cfg.model.friction} sizes {listed} ({per_size} filter(s) '
         f"each, {how}); the lowest BIC on the identification data's innovations is kept"
     )
-    result = compare_sizes(starts, train, est.ekf_tuning(), spec).to_dict()
+    result = compare_sizes(models, train, est.ekf_tuning(), spec).to_dict()
     result["friction"] = cfg.model.friction
     for line in size_lines(result):
         say("  " + line)
-    return sized(cfg, result["chosen"]), result
+    return sized(cfg, result["chosen"]), result, starts[result["chosen"]]
 
 
 def size_lines(sizes: Mapping[str, Any]) -> list[str]:

@@ -30,7 +30,6 @@ whole config, for ``torchfric train``), ``DIR/sweep.png`` (score against each pa
 from __future__ import annotations
 
 import json
-import math
 import multiprocessing
 import os
 import pathlib
@@ -93,11 +92,6 @@ class _Objective:
                 f"{reports.last:.6g}; {took:.1f} s): {values_text(values)}"
             )
             raise optuna.TrialPruned(f"pruned after pass {reports.pruned_at}")
-        if score is None or math.isnan(score):
-            message = "the run finished without a score (no pass completed)"
-            trial.set_user_attr("error", message)
-            self.say(f"  trial {n}: failed: {message}")
-            raise _TrialFailed(message)
         self.say(f"  trial {n}: {score:.6g} ({took:.1f} s): {values_text(values)}")
         return float(score)
 

@@ -65,18 +65,14 @@ def _numbered_search(**kwargs: Any) -> Any:
 def _ray_trial(config: dict[str, Any], spec: SweepSpec) -> dict[str, float]:
     """One Ray trial: the run of `spec`'s config with the trial's values; its score, or NaN
     (Optuna records the trial as FAIL) with the run's error in the study."""
-    from .sweep_trial import run_trial
+    from .sweep_trial import run_trial, trial_dir
 
     number, trial_id = int(config[_NUMBER]), int(config[_ID])
     values = {p.key: p.value(config[p.key]) for p in spec.params}
     storage = open_storage(spec.storage)
-    storage.set_trial_user_attr(
-        trial_id, "run_dir", str(pathlib.Path(spec.out) / "trials" / f"{number:04d}")
-    )
+    storage.set_trial_user_attr(trial_id, "run_dir", str(trial_dir(spec.out, number)))
     try:
         score, _, _ = run_trial(spec, number, values, lambda value, step: False)
-        if score is None or math.isnan(score):
-            raise TorchfricError("the run finished without a score (no pass completed)")
     except RunInterrupted:
         raise
     except TorchfricError as err:

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from ..errors import TorchfricError
 from ..estimators.metrics import mean_fit
 from ..estimators.observers import Callback
 from .config import Config
@@ -91,8 +92,9 @@ class PassReports(Callback):
         return self._step(value, record.index)
 
     def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
-        lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
-        return self._step(max(lls) if lls else None, pass_index)
+        from .observers import best_member_loglik
+
+        return self._step(best_member_loglik(state, pass_index), pass_index)
 
     def on_epoch_end(self, record: Any, result: Any) -> bool | None:
         value = record.val_score if self.kind == "validation_fit" else -record.loss
@@ -131,7 +133,10 @@ def run_trial(
         result = train(
             cfg, run_dir=trial_dir(spec.out, number), say=lambda msg: None, callbacks=(reports,)
         )
-    return trial_score(result, spec.kind), reports, result
+    score = trial_score(result, spec.kind)
+    if reports.pruned_at is None and (score is None or math.isnan(score)):
+        raise TorchfricError("the run finished without a score (no pass completed)")
+    return score, reports, result
 
 
 def values_text(values: dict[str, Any]) -> str:

@@ -29,6 +29,8 @@ from ..files import atomic_write_text, json_safe
 
 __all__ = ["cmd_track", "add_track_parser"]
 
+_BLOCK = 100  # tracker rows converted and written to track.csv at a time
+
 
 def add_track_parser(sub: Any) -> None:
     """The ``track`` subcommand's arguments."""
@@ -50,12 +52,19 @@ def add_track_parser(sub: Any) -> None:
 
 
 def cmd_track(args: argparse.Namespace) -> int:
-    if isinstance(args.every, bool) or args.every < 1:
+    if args.every < 1:
         raise TorchfricError(f"--every must be an integer >= 1, got {args.every}")
     if args.idle <= 0:
         raise TorchfricError(f"--idle must be > 0 seconds, got {args.idle}")
     from .use import load_for_eval
 
+    for item in args.set or []:
+        if not item.startswith(("track.", "estimator.")):
+            raise TorchfricError(
+                f"--set {item}: torchfric track takes track.* and estimator.* keys (its settings "
+                "and the filter's tuning); the record is read as the run read its records, with "
+                "--column and --position-unit for another file's columns and unit"
+            )
     model, cfg, exp, unit, raw = load_for_eval(args)
     if args.set:
         cfg = cfg.with_overrides(list(args.set))
@@ -68,14 +77,17 @@ def cmd_track(args: argparse.Namespace) -> int:
             "empty directory, never over an earlier one: give another --out"
         )
     out.mkdir(parents=True, exist_ok=True)
-    run = out
-    session = _Session(model, cfg, raw, exp, run, args)
+    session = _Session(model, cfg, raw, exp, out, args)
     try:
         session.feed(exp)
         if args.follow:
             session.follow(args)
     except KeyboardInterrupt:
         sys.stderr.write("interrupted: writing what was tracked so far\n")
+    except TorchfricError:  # a diverged filter: what was tracked before it is kept, then the error
+        if session.ts:
+            session.finish()
+        raise
     session.finish()
     return 0
 
@@ -95,9 +107,14 @@ class _Session:
         self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
                                every=args.every, compile=tuning.compile)  # fmt: skip
         self.measure = tuning.measure
-        self.rows: list[tuple[float, Any, Any, list[float], list[float]]] = []
+        # per row: the time, the physical values and their σ; the last θ and P_θθ for final.pt
+        self.ts: list[float] = []
+        self.values: list[list[float]] = []
+        self.stds: list[list[float]] = []
+        self.last: tuple[Any, Any] | None = None
         self.seen = 0
         self.seconds = 0.0  # in the tracking loop itself (filter, detector, rows)
+        self.first: tuple[float, int] | None = None  # (seconds, samples) of the first chunk
         self.t0 = time.perf_counter()
         self.names = list(model.theta_names)
         self.csv = open(run / "track.csv", "w", encoding="utf-8")  # noqa: SIM115 (kept open)
@@ -116,18 +133,16 @@ class _Session:
         t, u, y = t[self.seen :], u[self.seen :], y[self.seen :]
         changes = len(self.tracker.changes)
         start = time.perf_counter()
-        rows = list(self.tracker.run(t, u, y))
-        thetas = self.torch.stack([r.theta for r in rows])
-        variances = self.torch.stack([self.torch.diagonal(r.P_theta) for r in rows])
-        values = self.model.to_physical(thetas)
-        # σ of the physical values by the delta method (`uncertainty.parameter_std`, per row)
-        scale = self.torch.where(self.model.log_mask(), values, self.torch.ones_like(values))
-        stds = scale * variances.clamp_min(0.0).sqrt()
-        table = self.torch.stack([values, stds], dim=-1).reshape(len(rows), -1).tolist()
-        for row, cells, v, sd in zip(rows, table, values.tolist(), stds.tolist(), strict=True):
-            self.csv.write(",".join(map(repr, [row.t, *cells])) + "\n")
-            self.rows.append((row.t, row.theta, row.P_theta, v, sd))
-        self.csv.flush()
+        block = []
+        for row in self.tracker.run(t, u, y):
+            if self.first is None:  # the session's first chunk builds or loads the C code
+                self.first = (time.perf_counter() - start, self.tracker.samples)
+            block.append(row)
+            if len(block) == _BLOCK:
+                self._write(block)
+                block = []
+        if block:
+            self._write(block)
         self.seconds += time.perf_counter() - start
         self.seen += t.numel()
         if len(self.tracker.changes) > changes:
@@ -136,16 +151,34 @@ class _Session:
                 self._say(f"change detected at t = {c:.3f} s; P_θθ re-opened")
         self._say(f"{self.seen} samples tracked, t = {float(t[-1]):.3f} s")
 
+    def _write(self, rows: list[Any]) -> None:
+        """Rows of the tracker into track.csv (flushed) and the session's tracks."""
+        from ..estimators.uncertainty import physical_std
+
+        torch = self.torch
+        thetas = torch.stack([r.theta for r in rows])
+        values = self.model.to_physical(thetas)
+        variances = torch.stack([torch.diagonal(r.P_theta) for r in rows])
+        stds = physical_std(self.model, thetas, variances)
+        table = torch.stack([values, stds], dim=-1).reshape(len(rows), -1).tolist()
+        for row, cells in zip(rows, table, strict=True):
+            self.csv.write(",".join(map(repr, [row.t, *cells])) + "\n")
+        self.csv.flush()
+        self.ts.extend(r.t for r in rows)
+        self.values.extend(values.tolist())
+        self.stds.extend(stds.tolist())
+        self.last = (rows[-1].theta, rows[-1].P_theta)
+
     def follow(self, args: argparse.Namespace) -> None:
         """Re-read the growing file and track its new samples, until `args.idle` seconds pass
         without any."""
-        from .use import load_for_eval
+        from .loading import load_record
 
         last = time.monotonic()
         while time.monotonic() - last < args.idle:
             time.sleep(min(1.0, args.idle / 10))
-            try:
-                _, _, exp, _, _ = load_for_eval(args)
+            try:  # the record as the first read took it (`load_for_eval`'s data config)
+                exp, _ = load_record(self.cfg, args.data)
             except TorchfricError:
                 continue  # a row being written: read again at the next poll
             if exp.n > self.seen:
@@ -155,22 +188,27 @@ class _Session:
     def finish(self) -> None:
         self.csv.close()
         self._events()
-        if not self.rows:
-            raise TorchfricError("no sample was tracked: the record has fewer than 2 samples")
-        _, theta, P_theta, _, _ = self.rows[-1]
+        if self.last is None:
+            raise TorchfricError(
+                "no sample was tracked: the record has fewer than 2 samples, or tracking stopped "
+                "before its first chunk"
+            )
+        theta, P_theta = self.last
         final = self.model.set_theta(theta)
         _final_checkpoint(final, self.cfg, theta, P_theta, self.run, self.tracker, self.seen)
-        figure = _track_figure(self.model, self.rows, self.tracker.changes)
+        figure = _track_figure(self.model.theta_names, self)
         from .figures import pixels, png_from_pixels
 
         px = pixels(figure)
         (self.run / "track.png").write_bytes(png_from_pixels(px))
-        _tensorboard(self.run, self.model, self.rows, self.tracker, px)
+        _tensorboard(self.run, self.model.theta_names, self, px)
         seconds = time.perf_counter() - self.t0
-        rate = self.seen / max(self.seconds, 1e-9)
+        first_s, first_n = self.first or (0.0, 0)
+        rate = (self.tracker.samples - first_n) / max(self.seconds - first_s, 1e-9)
         print(
             f"torchfric: tracked {self.seen} samples in {self.seconds:.2f} s ({rate:,.0f} "
-            f"samples/s, {rate * float(self.tracker.dt):,.0f}× real time; {seconds:.1f} s with "
+            f"samples/s, {rate * float(self.tracker.dt):,.0f}× real time, after a first chunk "
+            f"of {first_s:.2f} s that built or loaded the filter's C code; {seconds:.1f} s with "
             "the outputs)"
         )
         print("changes     " + (", ".join(f"{c:.3f} s" for c in self.tracker.changes) or "none"))
@@ -234,7 +272,7 @@ def _final_checkpoint(model, cfg, theta, P_theta, run, tracker, samples) -> None
     save_checkpoint(run / "final.pt", payload)
 
 
-def _track_figure(model, rows, changes):  # type: ignore[no-untyped-def]
+def _track_figure(names, session):  # type: ignore[no-untyped-def]
     """The parameter tracks (physical values) with ±2σ bands and the change times."""
     import math
 
@@ -242,9 +280,9 @@ def _track_figure(model, rows, changes):  # type: ignore[no-untyped-def]
 
     from .figures import _subplots
 
-    names = list(model.theta_names)
-    t = np.array([r[0] for r in rows])
-    vals, stds = np.array([r[3] for r in rows]), np.array([r[4] for r in rows])
+    names, changes = list(names), session.tracker.changes
+    t = np.array(session.ts)
+    vals, stds = np.array(session.values), np.array(session.stds)
     cols = 3 if len(names) > 4 else 2
     nrows = math.ceil(len(names) / cols)
     fig, axes = _subplots(nrows, cols, figsize=(4.2 * cols, 2.3 * nrows), squeeze=False)
@@ -265,19 +303,19 @@ def _track_figure(model, rows, changes):  # type: ignore[no-untyped-def]
     return fig
 
 
-def _tensorboard(run, model, rows, tracker, px) -> None:  # type: ignore[no-untyped-def]
+def _tensorboard(run, names, session, px) -> None:  # type: ignore[no-untyped-def]
     from torch.utils.tensorboard import SummaryWriter
 
     writer = SummaryWriter(log_dir=str(run))
     try:
-        dt = float(tracker.dt)
-        for t, _, _, values, stds in rows:
+        dt = float(session.tracker.dt)
+        for t, values, stds in zip(session.ts, session.values, session.stds, strict=True):
             step = round(t / dt)
-            for name, value, std in zip(model.theta_names, values, stds, strict=True):
+            for name, value, std in zip(names, values, stds, strict=True):
                 writer.add_scalar(f"track/{name}", value, step)
                 writer.add_scalar(f"track_std/{name}", std, step)
-        for c in tracker.changes:
+        for c in session.tracker.changes:
             writer.add_scalar("track/change", c, round(c / dt))
-        writer.add_image("track/parameters", px, len(rows), dataformats="CHW")
+        writer.add_image("track/parameters", px, len(session.ts), dataformats="CHW")
     finally:
         writer.close()

@@ -418,9 +418,8 @@ def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
             )
         samples += exp.n
         f.callback.on_progress(p, samples, f.total)
-        s = f.states
-        theta = torch.where(good[:, None], x[:, s:], theta)
-        P_theta = torch.where(good[:, None, None], P[:, s:, s:], P_theta)
+        theta = torch.where(good[:, None], x[:, f.states :], theta)
+        P_theta = torch.where(good[:, None, None], P[:, f.states :, f.states :], P_theta)
     return PassSums(theta, P_theta, P, *sums, samples, failures)
 
 

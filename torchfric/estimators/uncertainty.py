@@ -24,7 +24,13 @@ from torch import Tensor
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 
-__all__ = ["friction_jacobian", "friction_band", "friction_samples", "parameter_std"]
+__all__ = [
+    "friction_jacobian",
+    "friction_band",
+    "friction_samples",
+    "parameter_std",
+    "physical_std",
+]
 
 
 def _check(model: ArmModel, P_theta: Tensor | None, theta: Tensor | None) -> Tensor:
@@ -150,6 +156,12 @@ def parameter_std(
     """
     th = _check(model, P_theta, theta)
     P = torch.as_tensor(P_theta, dtype=torch.float64)
-    scale = torch.where(model.log_mask(), model.to_physical(th), torch.ones_like(th))
-    std = scale * torch.diagonal(P).clamp_min(0.0).sqrt()
+    std = physical_std(model, th, torch.diagonal(P))
     return dict(zip(model.theta_names, std.tolist(), strict=True))
+
+
+def physical_std(model: ArmModel, theta: Tensor, variances: Tensor) -> Tensor:
+    """`parameter_std` as tensors, for a batch: θ `(..., k)` and the variances ``diag P_θθ``
+    `(..., k)` → the physical parameters' σ `(..., k)`."""
+    scale = torch.where(model.log_mask(), model.to_physical(theta), torch.ones_like(theta))
+    return scale * variances.clamp_min(0.0).sqrt()
