@@ -92,13 +92,7 @@ def make_propagator(model: ArmModel, substeps: int, *, mm: MatMul | None = None)
             x = x + (k1 + 3.0 * (k2 + k3) + k4) * (h / 8.0)
         return x, Phi
 
-    propagate.mm = mm  # type: ignore[attr-defined]
-    propagate.states = model.state_size  # type: ignore[attr-defined]  # entries of x before θ
-    # what its code depends on (part of `compile_step`'s key); None for an unnamed product
-    propagate.key = step_key(  # type: ignore[attr-defined]
-        "rk4-3/8 propagator", structure_key(model), substeps, product_name(mm)
-    )
-    return propagate
+    return _tagged(propagate, "rk4-3/8 propagator", model, substeps, mm)
 
 
 def _stepped_propagator(model: ArmModel, substeps: int, mm: MatMul) -> Propagator:
@@ -121,9 +115,16 @@ def _stepped_propagator(model: ArmModel, substeps: int, mm: MatMul) -> Propagato
         Phi, x = grad(rows, has_aux=True)(z.expand(nx, z.shape[0]), u, dt)
         return x, Phi
 
+    return _tagged(propagate, "bristle propagator", model, substeps, mm)
+
+
+def _tagged(
+    propagate: Callable, name: str, model: ArmModel, substeps: int, mm: MatMul
+) -> Propagator:
+    """`propagate` carrying what `make_step` reads: its product `.mm`, the states before θ
+    `.states`, and `.key`, what its code depends on (part of `compile_step`'s key; None for an
+    unnamed product)."""
     propagate.mm = mm  # type: ignore[attr-defined]
-    propagate.states = model.state_size  # type: ignore[attr-defined]  # entries of x before θ
-    propagate.key = step_key(  # type: ignore[attr-defined]
-        "bristle propagator", structure_key(model), substeps, product_name(mm)
-    )
+    propagate.states = model.state_size  # type: ignore[attr-defined]
+    propagate.key = step_key(name, structure_key(model), substeps, product_name(mm))  # type: ignore[attr-defined]
     return propagate
