@@ -150,6 +150,8 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
             v_scale = float(torch.quantile(v_all, 0.95)) or 1.0
         kwargs["velocity_scale"] = v_scale or 1.0
         kwargs["torque_scale"] = m.torque_scale if m.torque_scale is not None else 0.1
+        if m.friction == "tanh" and m.saturation > 0 and m.log_positive:
+            kwargs["min_slope"] = m.saturation / kwargs["velocity_scale"]
     kwargs["log_positive"] = m.log_positive
     friction = make_friction(m.friction, m.size, **kwargs)
     v_scale = kwargs.get("velocity_scale") or m.velocity_scale or 1.0

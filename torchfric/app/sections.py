@@ -167,6 +167,11 @@ class ModelConfig(TableSection):
         log_positive: estimate positive parameters (M, b, variances…) as logarithms.
         velocity_scale, torque_scale: scales for the friction's initial shape; ``None`` = from
             the data.
+        saturation: tanh only: every neuron's input weight is bounded below by ``saturation /
+            velocity scale`` (`OddTanhFriction.min_slope`), so each neuron is saturated to
+            within ``1 − tanh(saturation)`` at the data's 95th-percentile speed and none can
+            act as a second viscous term: b is then the total friction's slope at high speed,
+            identifiable by construction. 0 = the paper's unbounded weights.
         init: "prefit" (least-squares pre-fit on the training data), "config" (the values above)
             or the path of a checkpoint to warm-start from (stored absolute).
         dynamic: "none" (static friction) or "lugre": a bristle state z with ``ż = q̇ − σ0 |q̇|
@@ -192,6 +197,7 @@ class ModelConfig(TableSection):
     log_positive: bool = True
     velocity_scale: float | None = None
     torque_scale: float | None = None
+    saturation: float = 3.0
     init: str = "prefit"
     asymmetric: float | None = None
     dynamic: str = "none"
@@ -227,6 +233,7 @@ class ModelConfig(TableSection):
             )
         c.number("velocity_scale", gt=0.0, optional=True, example=10.0)
         c.number("torque_scale", gt=0.0, optional=True, example=1.0)
+        c.number("saturation", ge=0.0)
         c.string("init")
         _check_sizes(c, self)
         c.string("dynamic", choices=DYNAMICS)

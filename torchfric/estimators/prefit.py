@@ -136,8 +136,17 @@ def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmM
     variants: list[dict[str, object]] = []
     if kind == "tanh":
         # Slopes spread from "almost viscous" to "sharp Coulomb" at a few overall scales.
-        for lo, hi in ((0.3, 100.0), (1.0, 300.0), (0.1, 30.0)):
+        floor = float(kwargs.get("min_slope", 0.0))
+        spreads = ((0.3, 100.0), (1.0, 300.0), (0.1, 30.0))
+        if floor:
+            # a bounded slope (`OddTanhFriction.min_slope`): spreads that start above the floor,
+            # from just above it and from a few times it
+            f = floor * v_scale
+            spreads += tuple((a * f, b) for a in (1.2, 2.0, 4.0) for b in (10.0, 30.0, 100.0))
+        for lo, hi in spreads:
+            hi = max(hi, 10.0 * lo)
             w1 = torch.logspace(math.log10(lo), math.log10(hi), size, dtype=torch.float64) / v_scale
+            w1 = torch.maximum(w1, 1.2 * floor * torch.linspace(1.0, 1.5, size, dtype=torch.float64))
             variants.append({"w1": w1, "w2": torch.full((size,), fc / size, dtype=torch.float64)})
     elif kind == "polytopic":
         # Pair centres and centre-model widths over two decades of the velocity scale: a narrow
@@ -198,8 +207,16 @@ def _slope_bounds(model: ArmModel, v_stick: float) -> tuple[Tensor, Tensor]:
     hi = torch.full((k,), math.inf, dtype=torch.float64)
     names = model.theta_names
     mask = model.log_mask()
+    floor = float(getattr(model.friction, "min_slope", 0.0))
     for i, name in enumerate(names):
-        if name.startswith("W1["):
+        if name.startswith("W1[") and floor:
+            # a bounded slope (stored as r, W1 = floor (1 + softplus(r/floor))): the upper bound
+            top = torch.tensor([max(10.0 / v_stick, 2.0 * floor)], dtype=torch.float64)
+            hi[i] = float(model.friction.flat_from_physical_w1(top)[0])  # type: ignore[operator]
+            # and a lower one at W1 = 1.13 floor (r = −2 floor), off the flat end of the
+            # softplus, where LM's steps in r would no longer move W1
+            lo[i] = -2.0 * floor
+        elif name.startswith("W1["):
             lo[i], hi[i] = -10.0 / v_stick, 10.0 / v_stick
         elif name.startswith("sigma"):
             floor = (v_stick / 10.0) ** 2
@@ -264,7 +281,10 @@ def _levenberg_marquardt(
         J = jacobian(th)
         JtJ = J.transpose(1, 2) @ J
         g = (J.transpose(1, 2) @ rr.unsqueeze(-1)).squeeze(-1)
-        damp = torch.diag_embed(torch.diagonal(JtJ, dim1=1, dim2=2).clamp_min(1e-12))
+        # Marquardt's scaling by diag(JᵀJ), floored relative to its largest entry (an absolute
+        # floor would act in some units and not in others: the fit must not depend on them)
+        diag = torch.diagonal(JtJ, dim1=1, dim2=2)
+        damp = torch.diag_embed(torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)))
         searching = torch.ones(idx.numel(), dtype=torch.bool)
         rel = torch.zeros(idx.numel(), dtype=theta.dtype)
         for _ in range(10):

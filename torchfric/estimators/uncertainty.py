@@ -163,5 +163,5 @@ def parameter_std(
 def physical_std(model: ArmModel, theta: Tensor, variances: Tensor) -> Tensor:
     """`parameter_std` as tensors, for a batch: θ `(..., k)` and the variances ``diag P_θθ``
     `(..., k)` → the physical parameters' σ `(..., k)`."""
-    scale = torch.where(model.log_mask(), model.to_physical(theta), torch.ones_like(theta))
+    scale = model.physical_slope(theta)
     return scale * variances.clamp_min(0.0).sqrt()

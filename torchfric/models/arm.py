@@ -264,14 +264,42 @@ class ArmModel(nn.Module):
         return self
 
     def to_physical(self, theta: Tensor) -> Tensor:
-        """`(..., k)` θ in physical units (exp of the log-stored entries)."""
-        mask = self.log_mask()
-        return torch.where(mask, theta.exp(), theta)
+        """`(..., k)` θ in physical units (exp of the log-stored entries; a bounded tanh slope
+        through its softplus, `OddTanhFriction.min_slope`)."""
+        kf = self._k_friction
+        mask = self.log_mask()[kf:]
+        arm = theta[..., kf:]
+        return torch.cat(
+            [self.friction.flat_to_physical(theta[..., :kf]), torch.where(mask, arm.exp(), arm)],
+            -1,
+        )
 
     def from_physical(self, values: Tensor) -> Tensor:
         """Inverse of `to_physical`."""
-        mask = self.log_mask()
-        return torch.where(mask, values.clamp_min(1e-300).log(), values)
+        kf = self._k_friction
+        mask = self.log_mask()[kf:]
+        arm = values[..., kf:]
+        return torch.cat(
+            [
+                self.friction.flat_from_physical(values[..., :kf]),
+                torch.where(mask, arm.clamp_min(1e-300).log(), arm),
+            ],
+            -1,
+        )
+
+    def physical_slope(self, theta: Tensor) -> Tensor:
+        """`(..., k)` d(physical value)/dθ entry by entry: exp θ for log-stored entries, the
+        softplus' slope for bounded ones, 1 otherwise (the delta method's scale)."""
+        kf = self._k_friction
+        mask = self.log_mask()[kf:]
+        arm = theta[..., kf:]
+        return torch.cat(
+            [
+                self.friction.flat_slope(theta[..., :kf]),
+                torch.where(mask, arm.exp(), torch.ones_like(arm)),
+            ],
+            -1,
+        )
 
     def split(self, theta: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """θ `(..., k)` → (friction parameters, arm parameters) as physical-valued dicts; a leading
@@ -437,12 +465,13 @@ class ArmModel(nn.Module):
         f = spec["friction"]
         # A log-stored parameter whose exp underflowed is stored as 0.0; rebuild it as the
         # smallest positive double (callers with the exact θ, like load_checkpoint, set it after).
+        lo = float(f["kwargs"].get("min_slope", 0.0))
         values = {
             _FRICTION_ARG[f["kind"]].get(k, k.lower()): (
                 [max(x, _TINY) for x in v] if isinstance(v, list) else max(v, _TINY)
             )
             if k in _POSITIVE
-            else v
+            else ([max(x, lo * (1.0 + 1e-12)) for x in v] if lo and k == "W1" else v)
             for k, v in f["values"].items()
         }
         friction = make_friction(f["kind"], int(f["size"]), **f["kwargs"], **values)

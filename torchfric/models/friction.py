@@ -115,9 +115,63 @@ class Friction(nn.Module):
         i = 0
         for name, size, positive in self._spec:
             chunk = raw[..., i : i + size]
-            out[name] = chunk.exp() if (positive and self.log_positive) else chunk
+            if positive and self.log_positive:
+                out[name] = chunk.exp()
+            else:
+                out[name] = self._bounded(name, chunk) if name in self._bounds else chunk
             i += size
         return out
+
+    # -- bounded linear parameters ---------------------------------------------------------------
+    # A parameter with a lower bound ``lo`` (`_bounds[name]`, declared by a subclass) is stored
+    # as r with value ``lo + lo·softplus(r/lo)``: above the bound for every r, and ≈ ``lo + r``
+    # (the raw value, as unbounded) once well above it, so that an estimator's variances and
+    # steps keep their meaning there; the slope falls to 0 only right at the bound.
+    @property
+    def _bounds(self) -> dict[str, float]:
+        return {}
+
+    def _bounded(self, name: str, r: Tensor) -> Tensor:
+        lo = self._bounds[name]
+        x = r / lo
+        # softplus(x) = max(x, 0) + log(1 + e^−|x|), in the elementwise operations that the
+        # generated C of `torchfric.native` translates (it has no softplus)
+        return lo + lo * (x.clamp_min(0.0) + torch.log1p(torch.exp(-x.abs())))
+
+    def flat_to_physical(self, raw: Tensor) -> Tensor:
+        """`(..., k)` the flat parameters in physical units (`split`, flattened)."""
+        return torch.cat([v.reshape(*raw.shape[:-1], -1) for v in self.split(raw).values()], -1)
+
+    def flat_from_physical(self, values: Tensor) -> Tensor:
+        """Inverse of `flat_to_physical`."""
+        out, i = [], 0
+        for name, size, positive in self._spec:
+            chunk = values[..., i : i + size]
+            if positive and self.log_positive:
+                out.append(chunk.clamp_min(1e-300).log())
+            elif name in self._bounds:
+                lo = self._bounds[name]
+                excess = ((chunk - lo) / lo).clamp_min(1e-300)
+                # r = lo·log(expm1(excess)), written stably for a large excess
+                out.append(lo * (excess + torch.log(-torch.expm1(-excess))))
+            else:
+                out.append(chunk)
+            i += size
+        return torch.cat(out, -1)
+
+    def flat_slope(self, raw: Tensor) -> Tensor:
+        """`(..., k)` d(physical)/d(raw), element by element (for the delta method)."""
+        out, i = [], 0
+        for name, size, positive in self._spec:
+            chunk = raw[..., i : i + size]
+            if positive and self.log_positive:
+                out.append(chunk.exp())
+            elif name in self._bounds:
+                out.append(torch.sigmoid(chunk / self._bounds[name]))
+            else:
+                out.append(torch.ones_like(chunk))
+            i += size
+        return torch.cat(out, -1)
 
     def physical_parameters(self) -> dict[str, Tensor]:
         """The module's own parameters in physical units (differentiable)."""
@@ -154,8 +208,16 @@ class OddTanhFriction(Friction):
     Args:
         n: number of hidden neurons (3 in the paper: 6 parameters).
         w1, w2: initial weights `(n,)`. Defaults spread the slopes W1 logarithmically over
-            `[0.1, 30] / velocity_scale` (from an almost-viscous to a Coulomb-like neuron) and give
-            each neuron `torque_scale / n`.
+            `[0.1, 30] / velocity_scale` (from an almost-viscous to a Coulomb-like neuron; with
+            `min_slope`, above it) and give each neuron `torque_scale / n`.
+        min_slope: 0 (the paper's free weights), or a lower bound on every input weight,
+            ``W1_j > min_slope`` [1/velocity] (stored as r with ``W1 = lo + lo·softplus(r/lo)``,
+            ``lo = min_slope``). A run sets it to ``saturation / v_data`` (`model.saturation`,
+            3 by default, over the data's velocity scale): every neuron is then saturated to
+            within ``1 − tanh(3) = 0.5 %`` at the data's typical top speed, so that no neuron
+            can stay linear over the data and take the viscous term's role: the total
+            friction's slope at high speed is ``b`` alone, and b is identifiable by
+            construction. The sign of a neuron lives in W2.
     """
 
     kind = "tanh"
@@ -169,18 +231,29 @@ class OddTanhFriction(Friction):
         velocity_scale: float = 1.0,
         torque_scale: float = 0.1,
         log_positive: bool = True,
+        min_slope: float = 0.0,
     ) -> None:
         super().__init__(log_positive=log_positive)
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:
             raise TorchfricError(f"OddTanhFriction needs n >= 1 neurons, got {n!r}")
+        if not (isinstance(min_slope, (int, float)) and math.isfinite(min_slope) and min_slope >= 0):
+            raise TorchfricError(f"OddTanhFriction min_slope must be >= 0, got {min_slope!r}")
         self.n = n
+        self.min_slope = float(min_slope)
         if w1 is None:
             w1 = torch.logspace(-1.0, math.log10(30.0), n, dtype=torch.float64) / velocity_scale
+            w1 = w1 + 1.5 * self.min_slope
         if w2 is None:
             w2 = torch.full((n,), torque_scale / n, dtype=torch.float64)
-        self._add(
-            "W1", _as_vector(w1, n, "W1"), positive=False, labels=[f"W1[{j + 1}]" for j in range(n)]
-        )
+        w1 = _as_vector(w1, n, "W1")
+        if self.min_slope:
+            if bool((w1 <= self.min_slope).any()):
+                raise TorchfricError(
+                    f"OddTanhFriction W1 must be above min_slope = {self.min_slope:g}, got "
+                    f"{w1.tolist()}; give larger input weights"
+                )
+            w1 = self.flat_from_physical_w1(w1)
+        self._add("W1", w1, positive=False, labels=[f"W1[{j + 1}]" for j in range(n)])
         self._add(
             "W2", _as_vector(w2, n, "W2"), positive=False, labels=[f"W2[{j + 1}]" for j in range(n)]
         )
@@ -188,6 +261,20 @@ class OddTanhFriction(Friction):
     @property
     def size(self) -> int:
         return self.n
+
+    @property
+    def _bounds(self) -> dict[str, float]:
+        return {"W1": self.min_slope} if self.min_slope else {}
+
+    def flat_from_physical_w1(self, w1: Tensor) -> Tensor:
+        """Stored r of physical input weights `w1` above `min_slope`."""
+        lo = self.min_slope
+        excess = ((w1 - lo) / lo).clamp_min(1e-300)
+        return lo * (excess + torch.log(-torch.expm1(-excess)))
+
+    def init_kwargs(self) -> dict[str, Any]:
+        extra = {"min_slope": self.min_slope} if self.min_slope else {}
+        return {**super().init_kwargs(), **extra}
 
     def evaluate(self, v: Tensor, p: Mapping[str, Tensor]) -> Tensor:
         # C(v) = W2ᵀ tanh(W1 v), broadcast over any leading shape of v.
