@@ -28,7 +28,7 @@ from typing import Any
 
 from ..errors import TorchfricError
 from ..estimators.ekf import MEASUREMENTS
-from ..estimators.settings import RUN_ENSEMBLE, EKFTuning, EnsembleSpec, OETuning
+from ..estimators.settings import RUN_ENSEMBLE, TUNING_UNITS, EKFTuning, EnsembleSpec, OETuning
 from .schema import Check, TableSection, show, unknown_section_key
 
 __all__ = [
@@ -70,7 +70,7 @@ ESTIMATOR_KEYS: dict[str, tuple[tuple[str, str], ...]] = {
     "substeps": (("ekf", "substeps"), ("output_error", "substeps")),
     **_own("ekf", "theta_bound"),
     "compile": (("ekf", "compile"), ("output_error", "compile")),
-    **_own("ekf", "p0_relative", "rollback"),
+    **_own("ekf", "p0_relative", "rollback", "units"),
     **_own("output_error", "epochs", "lr", "lr_final", "window", "batch", "weights", "clip"),
     **_own("output_error", "lbfgs_steps", "patience", "eval_every", "schedule", "adjoint"),
     **_own("output_error", "learn_states", "continuity"),
@@ -91,7 +91,7 @@ class EstimatorConfig(TableSection):
     Attributes:
         method: "ekf" (augmented-state continuous–discrete EKF) or "output_error".
         ekf: the EKF tuning (`EKFTuning`; keys passes, tolerance, p0_state, p0_theta, q_state,
-            q_theta, r, measure, substeps, theta_bound, compile, p0_relative, rollback).
+            q_theta, r, measure, substeps, theta_bound, compile, p0_relative, rollback, units).
             p0_theta and q_theta are one number for every θ entry or one per entry.
         output_error: output-error training (`OETuning`; keys epochs, lr, lr_final, window
             (0: full length), batch, weights, clip, lbfgs_steps, patience, eval_every, schedule,
@@ -271,6 +271,7 @@ def _check_ekf_keys(c: Check, v: SimpleNamespace) -> None:
     c.boolean("compile")
     c.boolean("p0_relative")
     c.boolean("rollback")
+    c.string("units", choices=TUNING_UNITS)
 
 
 def _check_output_error_keys(c: Check, v: SimpleNamespace) -> None:

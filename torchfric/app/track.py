@@ -92,6 +92,20 @@ def cmd_track(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tuning(raw: dict[str, Any], cfg: Any, exp: Any) -> Any:
+    """The run's EKF tuning in absolute units: as the run resolved it (its checkpoint's
+    ``estimator.state.tuning``), else resolved at this record's velocity scale."""
+    import dataclasses
+
+    tuning = cfg.estimator.ekf_tuning()
+    stored = (raw.get("estimator") or {}).get("state", {}).get("tuning")
+    if stored:
+        fields = {f.name for f in dataclasses.fields(tuning)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+        return dataclasses.replace(tuning, **{k: v for k, v in values.items() if k in fields})
+    return tuning.resolved([exp])
+
+
 class _Session:
     """One tracking run: the tracker, its open output files, and the rows so far."""
 
@@ -102,7 +116,7 @@ class _Session:
 
         self.model, self.cfg, self.run, self.args = model, cfg, run, args
         self.settings = cfg.track  # a TrackSettings, checked (`sections.TrackConfig`)
-        tuning = cfg.estimator.ekf_tuning()
+        tuning = _tuning(raw, cfg, exp)
         theta, P_theta = _start(raw, model, self.settings)
         self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
                                every=args.every, compile=tuning.compile)  # fmt: skip

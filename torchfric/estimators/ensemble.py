@@ -338,6 +338,7 @@ def identify_ekf_ensemble(
     tuning = tuning or EKFTuning()
     k = model.num_parameters
     exps = experiment_list(experiments, tuning, k, "identify_ekf_ensemble")
+    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
     thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(k, model.state_size)

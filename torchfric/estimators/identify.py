@@ -62,6 +62,7 @@ def identify_ekf(
     """
     tuning = tuning or EKFTuning()
     exps = experiment_list(experiments, tuning, model.num_parameters, "identify_ekf")
+    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     data = measured_data(exps, tuning.measure)

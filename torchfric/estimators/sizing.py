@@ -164,6 +164,7 @@ def compare_sizes(
     sizes = sorted(starts)
     largest = starts[sizes[-1]]
     exps = experiment_list(experiments, tuning, largest.num_parameters, "compare_sizes")
+    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
     callback = callback or Callback()
     batched = len(sizes) > 1 and nests(starts)
     groups = [(largest, sizes)] if batched else [(starts[s], [s]) for s in sizes]
