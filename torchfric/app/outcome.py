@@ -135,10 +135,20 @@ def kept_pass(
         "best_pass": best,
         "converged": result.converged,
         "stopped": stopped,
-        # ‖Δθ‖/‖θ‖ of the last pass: how far from estimator.tolerance the run stopped
+        # ‖Δθ‖/‖θ‖ of the last pass, and its gain of innovation log-likelihood over the pass
+        # before (what estimator.tolerance judges)
         "last_change": last.rel_change if last is not None else None,
+        "last_gain": _last_gain(result.history),
         "tolerance": tolerance,
     }
+
+
+def _last_gain(history: Sequence[PassRecord]) -> float | None:
+    """The last pass's log-likelihood minus that of the pass before it (None for one pass)."""
+    if len(history) < 2:
+        return None
+    before = [r for r in history[:-1] if not r.rolled_back]
+    return history[-1].loglik - before[-1].loglik if before else None
 
 
 def kept_payload(kept: EKFResult, extra: dict[str, Any]) -> dict[str, Any]:
@@ -180,13 +190,14 @@ def parameter_lines(table: dict[str, Any], limit: int = 12) -> list[str]:
 
 
 _STOPPED = {
-    "converged": "converged: θ changed by less than estimator.tolerance in the last {unit}",
+    "converged": "converged in {total} {units}: the last raised the innovation log-likelihood "
+    "by {gain} (below estimator.tolerance = {tolerance} nats)",
     "early": "converged: the validation score stopped improving (estimator.patience)",
-    "rolled_back": "stopped: the last {unit} lowered the innovation likelihood and was undone "
-    "(the filter is at its best fit of the data; a smaller estimator.p0_theta or q_theta "
-    "steadies it)",
-    "budget": "NOT converged: after all {total} {units} θ still changed by {change} a pass "
-    "(estimator.tolerance {tolerance}); the kept pass is the one that {kept_by}",
+    "rolled_back": "converged in {total} {units}: the last lowered the innovation likelihood "
+    "and was undone, so the pass before is the filter's best fit of the data",
+    "budget": "NOT converged: the last of all {total} {units} still raised the innovation "
+    "log-likelihood by {gain} nats (estimator.tolerance {tolerance}); raise estimator.passes; "
+    "the kept pass is the one that {kept_by}",
     "budget_oe": "NOT converged: the validation score was still improving at the last of the "
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
     "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
@@ -241,6 +252,7 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
                 more=2 * (total or 1),
                 best=best,
                 change=_g(metrics.get("last_change")),
+                gain=_g(metrics.get("last_gain")),
                 tolerance=_g(metrics.get("tolerance")),
                 kept_by="validated best" if metrics.get("validation") else "fit the data best",
             )  # fmt: skip
@@ -261,6 +273,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
         )
     for w in metrics.get("warnings", []):
         lines.append(f"warning: {w}")
+    notes = (metrics.get("identifiability") or {}).get("messages", [])
+    lines += [f"note: {m}" for m in notes if m.startswith("(within")]
     width = max(len(k) for k in files)
     lines += [f"{k:<{width}}  {v}" for k, v in files.items()]
     return lines
