@@ -119,16 +119,43 @@ def result_warnings(
         and metrics.get("converged") is False
         and metrics.get("passes", 0) >= cfg.estimator.passes
     ):
-        change = metrics.get("last_change")
-        score = "validation FIT" if metrics.get("validation") else "innovation likelihood"
-        moving = f"θ still changing by {change:.2g} a pass, " if change is not None else ""
+        gain = metrics.get("last_gain")
+        moving = f" by {gain:.3g} nats" if gain is not None else ""
         out.append(
-            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with "
-            f"{moving}above estimator.tolerance = {cfg.estimator.tolerance:g}: raise "
-            f"estimator.passes if the {score} was still rising at the last pass "
-            "(report.html, TensorBoard); otherwise the kept pass stands"
+            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with the "
+            f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
+            f"= {cfg.estimator.tolerance:g}: raise estimator.passes (each pass over "
+            f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
+            "meanwhile"
         )
+    ident = metrics.get("identifiability") or {}
+    out += [m for m in ident.get("messages", []) if not m.startswith("(within")]
+    out += metrics.get("covariance_warnings", [])
+    far = _far_from_maximum(final, metrics)
+    if far:
+        out.append(far)
     return out
+
+
+def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
+    """A white-box parameter whose kept value is more than 2 σ from the maximum of the
+    fixed-θ likelihood (one Newton step away, `PEMCovariance.newton`): the filter's passes
+    stopped short of the estimate the σ describes."""
+    cov = metrics.get("covariance") or {}
+    steps = cov.get("newton_step_sigma")
+    if not steps:
+        return None
+    far = [
+        f"{n} ({s:+.1f} σ)"
+        for n, s in zip(cov.get("names", []), steps, strict=False)
+        if n in ("inertia", "viscous", "offset", "gravity", "asymmetric") and abs(s) > 2.0
+    ]
+    if not far:
+        return None
+    return (
+        f"the kept θ is not at the maximum of the prediction-error likelihood: {', '.join(far)} "
+        "away; its ± σ describe the spread around that maximum, so the error may exceed them"
+    )
 
 
 def provenance(cfg: Config, init_kind: str) -> str:

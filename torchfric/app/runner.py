@@ -27,6 +27,7 @@ from ..estimators.output_error import EpochRecord, identify_output_error
 from ..files import atomic_write_text, json_safe, write_json
 from ..models.arm import ArmModel
 from .checkpoint import build_checkpoint, read_checkpoint, save_checkpoint
+from .confidence import attach_covariance
 from .config import Config
 from .evaluation import evaluate_model, provenance, result_warnings, scoring_engine
 from .figures import png_from_pixels
@@ -45,16 +46,9 @@ from .snapshots import (
     snapshot_label,
 )
 
-__all__ = [
-    "train",
-    "TrainResult",
-    "load_data",  # re-exported from loading and evaluation, where they live, for old callers
-    "config_model",
-    "initial_model",
-    "check_resources",
-    "evaluate_model",
-    "result_warnings",
-]
+# load_data … result_warnings: re-exported from loading and evaluation, for old callers
+__all__ = ["train", "TrainResult", "load_data", "config_model", "initial_model"]
+__all__ += ["check_resources", "evaluate_model", "result_warnings"]
 
 # What an estimator's run returns: the final model, its estimator state and its metrics.
 _Outcome = tuple[ArmModel, dict[str, Any], dict[str, Any]]
@@ -175,12 +169,13 @@ def _run_ensemble(
         f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
     )
     result = ens.result
+    extra_scales = (best.q_scale, best.r_scale)  # the kept member's tuning, for its covariance
     obs.tensorboard.log_ensemble_result(result)
     kept, extra = kept_pass(
         result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
     )
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(ens.seconds, 1e-9)
-    extra["ensemble"] = summary
+    extra["ensemble"], extra["tuning_scales"] = summary, extra_scales
     return kept.model, kept_payload(kept, extra), extra
 
 
@@ -343,6 +338,7 @@ class _Run:
             try:
                 if self.cfg.estimator.method == "ekf":
                     final, state, extra = _run_ekf(self.cfg, model, self.train, obs, est, run)
+                    attach_covariance(self.cfg, final, self.train, state, extra, obs.say)
                 else:
                     final, state, extra = _run_output_error(
                         self.cfg, model, self.train, self.val, obs, est
@@ -354,9 +350,10 @@ class _Run:
                     pass
                 raise
             seconds = time.perf_counter() - self.t_start
-            self.covariance = state.get("P_theta")  # the kept pass's (None after output error)
+            self.covariance = state.get("P_theta")  # the kept θ's (None after output error)
+            self.filter_cov = state.get("filter_P_theta", self.covariance)  # the filter's own
             # the kept pass's scores, when the filter's own pass loop already made them
-            scores = obs.scores.scores_at(extra.get("best_pass"))
+            scores = None if "polished" in extra else obs.scores.scores_at(extra.get("best_pass"))
             scores = scores if scores is not None else evaluate_model(final, self.val, self.cfg)
             metrics = self._metrics(final, extra, seconds, scores)
             self._write_result(run, final, state, metrics)
@@ -479,7 +476,7 @@ class _Run:
         for group, by_name in groups.items():
             metrics[group] = {name: score.to_dict() for name, score in by_name.items()}
         metrics["warnings"] = self.warnings + result_warnings(
-            cfg, final, metrics, self.init_kind, covariance=self.covariance, start=self.model
+            cfg, final, metrics, self.init_kind, covariance=self.filter_cov, start=self.model
         )
         return metrics
 
