@@ -25,7 +25,7 @@ import torch
 
 from ..data import Experiment
 from ..errors import TorchfricError
-from ..estimators.covariance import pem_refine
+from ..estimators.covariance import noise_model, pem_refine
 from ..models.arm import ArmModel
 from .config import Config
 
@@ -55,14 +55,11 @@ def attach_covariance(
         tuning, q_state=tuple(q_scale * x for x in tuning.q_state),  # type: ignore[arg-type]
         r=tuple(r_scale * x for x in tuning.r)))  # fmt: skip
     try:
+        q_scale, r_scale = noise_model(
+            final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale
+        )
         polished, pem, trace = pem_refine(
-            final,
-            train,
-            tuning,
-            theta,
-            q_scale=q_scale,
-            r_scale=r_scale,
-            hint=torch.diagonal(P_filter).clamp_min(0.0).sqrt(),
+            final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale, iterations=8
         )
     except TorchfricError as err:
         extra.setdefault("covariance_warnings", []).append(
@@ -79,7 +76,9 @@ def attach_covariance(
         )
     state["filter_P_theta"] = P_filter
     state["P_theta"] = pem.cov
-    extra["covariance"] = pem.to_dict()
+    extra["covariance"] = {**pem.to_dict(), "noise_model": {
+        "q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
+        "measure": tuning.measure}}  # fmt: skip
     ident = pem.identifiability
     extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
     say(
