@@ -33,6 +33,7 @@ from torchfric.app.toml_io import toml_value
 from torchfric.data.rig import EXPERIMENTS
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import MEASUREMENTS
+from torchfric.estimators.settings import TUNING_UNITS
 from torchfric.models.friction import FRICTIONS
 from torchfric.models.lugre import DYNAMICS
 from torchfric.models.simulate import SOLVERS
@@ -170,6 +171,7 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
         "estimator.measure": set(MEASUREMENTS),
         "model.init": set(INIT_KEYWORDS),
         "model.dynamic": set(DYNAMICS),
+        "estimator.units": set(TUNING_UNITS),
     }
     for key, choices in expected.items():
         assert _choices(entries[key]["allowed"]) == choices, key

@@ -18,6 +18,7 @@ correlation matrix, and the Newton step to the likelihood's maximum in σ units)
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -25,11 +26,11 @@ import torch
 
 from ..data import Experiment
 from ..errors import TorchfricError
-from ..estimators.covariance import noise_model, pem_refine
+from ..estimators.covariance import noise_model, pem_covariance, pem_refine
 from ..models.arm import ArmModel
 from .config import Config
 
-__all__ = ["attach_covariance", "PHYSICAL"]
+__all__ = ["attach_covariance", "attach_oe_covariance", "PHYSICAL"]
 
 PHYSICAL = ("inertia", "viscous", "offset", "gravity", "asymmetric", "c_m", "lugre_")
 """White-box names: a non-identifiable direction that involves one of them is a warning; one
@@ -43,6 +44,7 @@ def attach_covariance(
     state: dict[str, Any],
     extra: dict[str, Any],
     say: Callable[[str], None],
+    validation: list[Experiment] | None = None,
 ) -> None:
     """Replace ``state["P_theta"]`` by the sandwich covariance at ``state["theta"]`` and add
     ``covariance`` and ``identifiability`` to `extra` (see the module docstring). When it
@@ -55,18 +57,35 @@ def attach_covariance(
         tuning, q_state=tuple(q_scale * x for x in tuning.q_state),  # type: ignore[arg-type]
         r=tuple(r_scale * x for x in tuning.r)))  # fmt: skip
     try:
-        q_scale, r_scale = noise_model(
-            final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale
-        )
-        polished, pem, trace = pem_refine(
-            final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale, iterations=8
-        )
+        ranked = noise_model(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     except TorchfricError as err:
+        ranked, failure = [], err
+    for q_scale, r_scale in ranked[:3]:  # the likeliest noise model whose filter stays healthy
+        try:
+            polished, pem, trace = pem_refine(
+                final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale, iterations=8
+            )
+            break
+        except TorchfricError as err:
+            failure = err
+    else:
         extra.setdefault("covariance_warnings", []).append(
-            f"the ± σ are the filter's own P_θθ (too narrow as a rule): {err}"
+            f"the ± σ are the filter's own P_θθ (too narrow as a rule): {failure}"
         )
         return
-    if len(trace) > 1:  # the prediction-error maximum lies elsewhere: the model moves there
+    judged = validation or train
+    if (
+        len(trace) > 1
+        and _score(cfg, final, polished, judged) < _score(cfg, final, theta, judged) - 0.1
+    ):
+        # The one-step prediction error's optimum simulates worse (a model class that cannot
+        # reach the machine, e.g. a static curve for LuGre friction, trades the long horizon
+        # for the short one): the kept θ stays, with the σ at it and a warning of how far the
+        # prediction-error optimum lies (`newton_step_sigma`).
+        extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
+        say("  prediction-error polish simulated worse and was not kept")
+        pem = pem_covariance(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+    elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         final.set_theta(polished)
         state["filter_theta"], state["theta"] = theta, polished.clone()
         extra["polished"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
@@ -86,6 +105,47 @@ def attach_covariance(
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth})"
         + ("" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)")
     )
+
+
+def attach_oe_covariance(
+    cfg: Config,
+    final: ArmModel,
+    train: list[Experiment],
+    state: dict[str, Any],
+    extra: dict[str, Any],
+    say: Callable[[str], None],
+) -> None:
+    """An output-error run's σ: the sandwich covariance of its own criterion, the full-length
+    simulation error weighted as it trained (`simulation_covariance`), at the kept θ. Adds
+    ``P_theta`` to `state` and ``covariance``, ``identifiability`` to `extra`; when it cannot be
+    computed, a warning says why and the parameters keep no σ."""
+    from ..estimators.oe_covariance import simulation_covariance
+
+    tuning = cfg.estimator.oe_tuning(cfg.seed)
+    try:
+        cov = simulation_covariance(final, train, state["theta"], weights=tuple(tuning.weights),
+                                    substeps=tuning.substeps)  # fmt: skip
+    except TorchfricError as err:
+        extra.setdefault("covariance_warnings", []).append(f"no ± σ for this result: {err}")
+        return
+    state["P_theta"] = cov.cov
+    extra["covariance"] = cov.to_dict()
+    extra["identifiability"] = {**cov.identifiability.to_dict(),
+                                "messages": _messages(cov.identifiability)}  # fmt: skip
+    say(f"  covariance: simulation-error sandwich over {cov.samples} samples "
+        f"({cov.blocks} blocks, {cov.bandwidth} lags)")  # fmt: skip
+
+
+def _score(cfg: Config, model: ArmModel, theta: Any, records: list[Experiment]) -> float:
+    """Mean of (FIT q + FIT q̇)/2 over `records` of `model` at θ (the runs' validation score)."""
+    import copy
+
+    from .evaluation import evaluate_model
+
+    scores = evaluate_model(copy.deepcopy(model).set_theta(theta), records, cfg).values()
+    fits = [0.5 * (s.fit_q + s.fit_qdot) for s in scores]
+    fits = [f if f == f else -math.inf for f in fits]  # NaN: the simulation failed
+    return sum(fits) / max(len(fits), 1)
 
 
 def _position_only(tuning: Any) -> Any:

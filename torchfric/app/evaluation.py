@@ -138,9 +138,8 @@ def result_warnings(
 
 
 def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
-    """A white-box parameter whose kept value is more than 2 σ from the maximum of the
-    fixed-θ likelihood (one Newton step away, `PEMCovariance.newton`): the filter's passes
-    stopped short of the estimate the σ describes."""
+    """A white-box parameter whose kept value is more than 2 σ from the optimum of the error
+    criterion its σ belongs to (one Newton step away, `PEMCovariance.newton`)."""
     cov = metrics.get("covariance") or {}
     steps = cov.get("newton_step_sigma")
     if not steps:
@@ -153,8 +152,9 @@ def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
     if not far:
         return None
     return (
-        f"the kept θ is not at the maximum of the prediction-error likelihood: {', '.join(far)} "
-        "away; its ± σ describe the spread around that maximum, so the error may exceed them"
+        f"the kept θ is not at the optimum of its error criterion ({cov.get('method')}): "
+        f"{', '.join(far)} away; its ± σ describe the spread around that optimum, so the error "
+        "may exceed them"
     )
 
 

@@ -27,7 +27,7 @@ from ..estimators.output_error import EpochRecord, identify_output_error
 from ..files import atomic_write_text, json_safe, write_json
 from ..models.arm import ArmModel
 from .checkpoint import build_checkpoint, read_checkpoint, save_checkpoint
-from .confidence import attach_covariance
+from .confidence import attach_covariance, attach_oe_covariance
 from .config import Config
 from .evaluation import evaluate_model, provenance, result_warnings, scoring_engine
 from .figures import png_from_pixels
@@ -338,11 +338,12 @@ class _Run:
             try:
                 if self.cfg.estimator.method == "ekf":
                     final, state, extra = _run_ekf(self.cfg, model, self.train, obs, est, run)
-                    attach_covariance(self.cfg, final, self.train, state, extra, obs.say)
+                    attach_covariance(self.cfg, final, self.train, state, extra, obs.say, self.val)
                 else:
                     final, state, extra = _run_output_error(
                         self.cfg, model, self.train, self.val, obs, est
                     )
+                    attach_oe_covariance(self.cfg, final, self.train, state, extra, obs.say)
             except TorchfricError:  # a diverged run: its figures so far are worth a look
                 try:
                     obs.tensorboard.finish()

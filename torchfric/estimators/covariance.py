@@ -35,9 +35,10 @@ of the covariance and the eigen-decomposition of the scaled information name the
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -51,6 +52,17 @@ from .ekf import MEASUREMENTS
 from .ensemble import _first_sample, make_masked_step
 from .observers import Callback
 from .passes import Filtering, initial_belief, measured_data
+from .sandwich import (  # noqa: F401 - _bartlett, _inverse: re-exported for the tests
+    BLOCKS,
+    CONDITION_LIMIT,
+    CORRELATION_LIMIT,
+    Identifiability,
+    PEMCovariance,
+    _bartlett,
+    _inverse,
+    identifiability,
+    long_run_covariance,
+)
 from .settings import EKFTuning
 
 __all__ = [
@@ -68,12 +80,6 @@ __all__ = [
     "long_run_covariance",
     "CONDITION_LIMIT",
 ]
-
-CORRELATION_LIMIT = 0.99
-"""|ρ| above which two parameters are reported as not separately identifiable."""
-CONDITION_LIMIT = 1e-8
-"""A direction of the scaled information with eigenvalue below this fraction of the largest is
-reported as not identifiable."""
 
 
 @dataclass
@@ -158,226 +164,6 @@ def _batched_loglik(
         sum_nis_all = sum_nis_all + carry[5]
     B = torch.stack(blocks, dim=1)
     return FixedThetaLikelihood(B.sum(1), B, sum_nis_all, total_n, block, good.clone())
-
-
-@dataclass
-class Identifiability:
-    """Which parameters the data cannot separate.
-
-    ``pairs``: ``(name_i, name_j, ρ)`` with ``|ρ| > CORRELATION_LIMIT``; ``directions``: for each
-    near-null direction of the scaled information, the names that make it up (largest
-    components first) and its relative eigenvalue; ``messages``: one line each."""
-
-    pairs: list[tuple[str, str, float]] = field(default_factory=list)
-    directions: list[tuple[list[str], float]] = field(default_factory=list)
-
-    @property
-    def ok(self) -> bool:
-        return not self.pairs and not self.directions
-
-    @property
-    def groups(self) -> list[tuple[list[str], str]]:
-        """The strongly correlated pairs joined into groups (connected components), with the
-        largest |ρ| in each, then each near-null direction not already inside a group: the
-        names and how they were found."""
-        parent: dict[str, str] = {}
-
-        def root(a: str) -> str:
-            while parent.get(a, a) != a:
-                a = parent[a]
-            return a
-
-        order: list[str] = []
-        for a, b, _ in self.pairs:
-            for n in (a, b):
-                if n not in order:
-                    order.append(n)
-            parent[root(a)] = root(b)
-        out: dict[str, tuple[list[str], float]] = {}
-        for a, _b, r in self.pairs:
-            names, top = out.get(root(a), ([], 0.0))
-            out[root(a)] = (names, max(top, abs(r)))
-        for n in order:
-            out[root(n)][0].append(n)
-        groups = [(names, f"|ρ| up to {top:.4f}") for names, top in out.values()]
-        seen = {n for names, _ in groups for n in names}
-        for names, ev in self.directions:
-            if not set(names) <= seen:
-                groups.append((names, f"relative information {ev:.1e}"))
-        return groups
-
-    @property
-    def messages(self) -> list[str]:
-        """One line per group of parameters the data cannot separate."""
-        out = []
-        for names, how in self.groups:
-            listed = ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else names[0]
-            out.append(
-                f"{listed} are not separately identifiable from this data ({how}): they trade "
-                "off against each other, only their combination is determined; fix one, use a "
-                "smaller model, or excite the machine so that they act differently"
-            )
-        return out
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "ok": self.ok,
-            "correlation_limit": CORRELATION_LIMIT,
-            "condition_limit": CONDITION_LIMIT,
-            "pairs": [{"a": a, "b": b, "rho": r} for a, b, r in self.pairs],
-            "directions": [{"parameters": n, "relative_eigenvalue": e} for n, e in self.directions],
-            "messages": self.messages,
-        }
-
-
-def identifiability(information: Tensor, cov: Tensor, names: Sequence[str]) -> Identifiability:
-    """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`) and near-null
-    directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
-    of the largest)."""
-    out = Identifiability()
-    d = torch.diagonal(cov).clamp_min(1e-300).sqrt()
-    corr = cov / (d[:, None] * d[None, :])
-    k = len(names)
-    for i in range(k):
-        for j in range(i + 1, k):
-            r = float(corr[i, j])
-            if abs(r) > CORRELATION_LIMIT:
-                out.pairs.append((names[i], names[j], r))
-    di = torch.diagonal(information).abs().clamp_min(1e-300).sqrt()
-    scaled = information / (di[:, None] * di[None, :])
-    evals, evecs = torch.linalg.eigh(0.5 * (scaled + scaled.T))
-    top = float(evals.abs().max()) or 1.0
-    for ev, vec in zip(evals.tolist(), evecs.T, strict=True):
-        if ev < CONDITION_LIMIT * top:
-            w = vec.abs()
-            order = torch.argsort(w, descending=True).tolist()
-            picked = [names[i] for i in order if w[i] >= 0.2 * w.max()]
-            out.directions.append((picked, ev / top))
-    return out
-
-
-@dataclass
-class PEMCovariance:
-    """What `pem_covariance` returns (all in estimation coordinates, θ order of the model).
-
-    ``cov`` the sandwich ``I⁻¹ J I⁻¹``; ``information`` ``I``; ``score_cov`` ``J``; ``gradient``
-    ``∇ℓ(θ̂)``; ``newton`` the step ``I⁻¹ ∇ℓ`` to the likelihood's maximum (in units of each
-    parameter's σ: ``newton_sigma``); ``loglik`` ℓ(θ̂); ``blocks`` and ``bandwidth`` of the
-    score's long-run covariance."""
-
-    theta: Tensor
-    cov: Tensor
-    information: Tensor
-    score_cov: Tensor
-    gradient: Tensor
-    newton: Tensor
-    loglik: float
-    samples: int
-    blocks: int
-    bandwidth: int
-    names: list[str]
-    identifiability: Identifiability
-    steps: Tensor | None = None  # the finite-difference steps used (estimation coordinates)
-    method: str = "sandwich"
-
-    @property
-    def std(self) -> Tensor:
-        return torch.diagonal(self.cov).clamp_min(0.0).sqrt()
-
-    @property
-    def newton_sigma(self) -> Tensor:
-        return self.newton / self.std.clamp_min(1e-300)
-
-    @property
-    def correlation(self) -> Tensor:
-        d = self.std.clamp_min(1e-300)
-        return self.cov / (d[:, None] * d[None, :])
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "method": self.method,
-            "loglik": self.loglik,
-            "samples": self.samples,
-            "blocks": self.blocks,
-            "bandwidth": self.bandwidth,
-            "names": list(self.names),
-            "correlation": self.correlation.tolist(),
-            "newton_step_sigma": self.newton_sigma.tolist(),
-        }
-
-
-BLOCKS = 256
-"""About this many blocks of consecutive samples carry the score's long-run covariance: with
-~30 blocks of 1000 samples its estimate was too noisy (±2σ coverage of a white-box model
-85–90 % over 100 fits); with ~256 it was 96–98 %."""
-_RHO_MAX = 0.95  # bound of the block scores' lag-one autocorrelation in the plug-in
-
-
-def long_run_covariance(scores: Tensor, segment: Tensor | None = None) -> tuple[Tensor, int]:
-    """The long-run covariance `(k, k)` of the sum of the block scores `(B, k)` (centred), with
-    a Bartlett kernel whose lag count comes from Andrews' AR(1) plug-in (`_bandwidth`); lags
-    never pair blocks of different experiments (`segment` `(B,)`, each block's experiment).
-    Returns ``(J, lags)``."""
-    segment = torch.zeros(scores.shape[0], dtype=torch.long) if segment is None else segment
-    lags = _bandwidth(scores, segment)
-    return _long_run(scores, segment, lags), lags
-
-
-def _bartlett(scores: Tensor) -> tuple[Tensor, int]:
-    """`long_run_covariance` of one experiment's block scores."""
-    return long_run_covariance(scores)
-
-
-def _lagged(c: Tensor, segment: Tensor, lag: int) -> Tensor:
-    """``Σ_b c_{b+lag} c_bᵀ`` `(k, k)` over block pairs of the same experiment."""
-    same = (segment[lag:] == segment[:-lag]).to(c.dtype)[:, None]
-    return (c[lag:] * same).T @ c[:-lag]
-
-
-def _bandwidth(scores: Tensor, segment: Tensor) -> int:
-    """Bartlett lags by Andrews' AR(1) plug-in on the centred block scores (module docstring):
-    ``S = 1.1447 (α̂ B)^{1/3}``, lags ``⌊S⌋`` between 1 and ``B / 4``."""
-    B = scores.shape[0]
-    cap = max(1, B // 4)
-    if B < 3:
-        return min(1, max(B - 1, 0))
-    c = scores - scores.mean(0, keepdim=True)
-    var = (c * c).sum(0)
-    cross = torch.diagonal(_lagged(c, segment, 1))
-    live = var > 1e-300 * var.max().clamp_min(1e-300)
-    if not bool(live.any()):
-        return 1
-    rho = (cross[live] / var[live]).clamp(-_RHO_MAX, _RHO_MAX)
-    alpha = float((4.0 * rho**2 / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)).mean())
-    S = 1.1447 * (alpha * B) ** (1.0 / 3.0)
-    return int(min(cap, max(1, math.floor(S))))
-
-
-def _long_run(scores: Tensor, segment: Tensor, lags: int) -> Tensor:
-    """Long-run covariance `(k, k)` of the sum of the block scores `(B, k)` (centred), Bartlett
-    weights ``1 − j/(L+1)`` over `lags` L, with no products across experiments."""
-    B = scores.shape[0]
-    c = scores - scores.mean(0, keepdim=True)
-    J = c.T @ c
-    for lag in range(1, min(lags, B - 1) + 1):
-        G = _lagged(c, segment, lag)
-        J = J + (1.0 - lag / (lags + 1.0)) * (G + G.T)
-    J = J * (B / max(B - 1, 1))
-    return 0.5 * (J + J.T)
-
-
-def _inverse(information: Tensor) -> Tensor:
-    """``I⁻¹`` by a symmetric eigen-decomposition on unit-diagonal scaling; directions with a
-    non-positive or negligible eigenvalue get no inverse (a pseudo-inverse): they are reported
-    by `identifiability`, not hidden behind a huge σ."""
-    d = torch.diagonal(information).abs().clamp_min(1e-300).sqrt()
-    scaled = information / (d[:, None] * d[None, :])
-    evals, evecs = torch.linalg.eigh(0.5 * (scaled + scaled.T))
-    top = float(evals.abs().max()) or 1.0
-    keep = evals > CONDITION_LIMIT * top
-    inv_e = torch.where(keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0)
-    inv_scaled = (evecs * inv_e) @ evecs.T
-    return inv_scaled / (d[:, None] * d[None, :])
 
 
 def innovations(
@@ -497,28 +283,13 @@ def pem_covariance(
     k = theta.numel()
     names = model.theta_names
     h = 1e-4 * torch.maximum(theta.abs(), torch.ones_like(theta))
-    info = torch.zeros(k, k, dtype=torch.float64)
-    block_scores: list[Tensor] = []
-    segment: list[int] = []
-    loglik, samples = 0.0, 0
-    base = innovations(model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale)
-    plus = [innovations(model, experiments, tuning, theta + h[j] * _unit(k, j),
-                        q_scale=q_scale, r_scale=r_scale) for j in range(k)]  # fmt: skip
-    minus = [innovations(model, experiments, tuning, theta - h[j] * _unit(k, j),
-                         q_scale=q_scale, r_scale=r_scale) for j in range(k)]  # fmt: skip
-    for i, (e, S) in enumerate(base):
-        De = torch.stack([(plus[j][i][0] - minus[j][i][0]) / (2 * h[j]) for j in range(k)], 1)
-        # V = Σ e²/S with the weights 1/S held (the filter's S depends on θ only through P):
-        # per sample the score −e ∂e / S and the Gauss–Newton information ∂eᵀ∂e / S
-        score = -(e / S)[:, None] * De
-        info += (De / S[:, None]).T @ De
-        n = e.numel()
-        size = block or max(1, sum(int(x[0].numel()) for x in base) // BLOCKS)
-        for part in torch.split(score, size):
-            block_scores.append(part.sum(0))
-            segment.append(i)
-        loglik += float(-0.5 * (e * e / S).sum())
-        samples += n
+    run = functools.partial(
+        innovations, model, experiments, tuning, q_scale=q_scale, r_scale=r_scale
+    )
+    base = run(theta)
+    plus = [run(theta + h[j] * _unit(k, j)) for j in range(k)]
+    minus = [run(theta - h[j] * _unit(k, j)) for j in range(k)]
+    info, block_scores, segment, loglik, samples = _sums(base, plus, minus, h, block)
     scores = torch.stack(block_scores)
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
@@ -540,6 +311,35 @@ def pem_covariance(
         identifiability=identifiability(info, cov, names),
         steps=h,
     )
+
+
+def _sums(
+    base: list[tuple[Tensor, Tensor]],
+    plus: list[list[tuple[Tensor, Tensor]]],
+    minus: list[list[tuple[Tensor, Tensor]]],
+    h: Tensor,
+    block: int | None,
+) -> tuple[Tensor, list[Tensor], list[int], float, int]:
+    """From the innovations at θ and θ ± h_j: the information, the block scores and each
+    block's experiment, ``−½ V`` and the sample count (`pem_covariance`)."""
+    k = h.numel()
+    info = torch.zeros(k, k, dtype=torch.float64)
+    block_scores: list[Tensor] = []
+    segment: list[int] = []
+    loglik, samples = 0.0, 0
+    size = block or max(1, sum(int(e.numel()) for e, _ in base) // BLOCKS)
+    for i, (e, S) in enumerate(base):
+        De = torch.stack([(plus[j][i][0] - minus[j][i][0]) / (2 * h[j]) for j in range(k)], 1)
+        # V = Σ e²/S with the weights 1/S held (the filter's S depends on θ only through P):
+        # per sample the score −e ∂e / S and the Gauss–Newton information ∂eᵀ∂e / S
+        score = -(e / S)[:, None] * De
+        info += (De / S[:, None]).T @ De
+        for part in torch.split(score, size):
+            block_scores.append(part.sum(0))
+            segment.append(i)
+        loglik += float(-0.5 * (e * e / S).sum())
+        samples += e.numel()
+    return info, block_scores, segment, loglik, samples
 
 
 def _loglik(
@@ -580,10 +380,11 @@ def noise_model(
     *,
     q_scale: float = 1.0,
     r_scale: float = 1.0,
-) -> tuple[float, float]:
+) -> list[tuple[float, float]]:
     """The Q and R factors (on the tuning's, times `q_scale`, `r_scale`) under which the
-    fixed-θ filter's innovations are most likely: the maximum of the Gaussian log-likelihood
-    over the grid `NOISE_GRID_Q` × `NOISE_GRID_R`, all filtered as one batch.
+    fixed-θ filter's innovations are most likely: the grid `NOISE_GRID_Q` × `NOISE_GRID_R`,
+    all filtered as one batch, ranked by the Gaussian log-likelihood (best first; the filters
+    that failed left out).
 
     The prediction-error criterion and its covariance are taken under this noise model: with
     the identification tuning's R (the paper's 1e-3 rad² against an encoder's ~1e-7) the filter
@@ -601,10 +402,8 @@ def noise_model(
         torch.tensor([r * r_scale for _, r in grid], dtype=torch.float64),
     )  # fmt: skip
     ll = torch.where(out.ok & torch.isfinite(out.total), out.total, -torch.inf)
-    i = int(torch.argmax(ll))
-    if math.isfinite(float(ll[i])):
-        best = grid[i]
-    return best[0] * q_scale, best[1] * r_scale
+    ranked = [grid[i] for i in torch.argsort(ll, descending=True).tolist() if ll[i] > -math.inf]
+    return [(q * q_scale, r * r_scale) for q, r in (ranked or [best])]
 
 
 def pem_refine(

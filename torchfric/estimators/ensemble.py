@@ -57,9 +57,9 @@ from .passes import (
     PassLedger,
     PassRecord,
     PassSums,
-    experiment_list,
     initial_belief,
     measured_data,
+    prepared,
     run_passes,
 )
 from .selection import select_by_fit
@@ -335,10 +335,8 @@ def identify_ekf_ensemble(
         TorchfricError: bad inputs, or every member diverged (the message says where).
     """
     t_start = time.perf_counter()
-    tuning = tuning or EKFTuning()
     k = model.num_parameters
-    exps = experiment_list(experiments, tuning, k, "identify_ekf_ensemble")
-    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), k, "identify_ekf_ensemble")
     thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(k, model.state_size)

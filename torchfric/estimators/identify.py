@@ -25,9 +25,9 @@ from .passes import (
     PassLedger,
     PassRecord,
     PassSums,
-    experiment_list,
     initial_belief,
     measured_data,
+    prepared,
     run_passes,
 )
 from .settings import EKFTuning
@@ -60,9 +60,9 @@ def identify_ekf(
         DivergenceError: naming pass, experiment, sample and reason; `.last_good` holds the
             result after the last completed pass (or the initial guess).
     """
-    tuning = tuning or EKFTuning()
-    exps = experiment_list(experiments, tuning, model.num_parameters, "identify_ekf")
-    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
+    exps, tuning = prepared(
+        experiments, tuning or EKFTuning(), model.num_parameters, "identify_ekf"
+    )
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     data = measured_data(exps, tuning.measure)

@@ -58,6 +58,7 @@ __all__ = [
     "pass_record",
     "run_passes",
     "experiment_list",
+    "prepared",
     "measurements",
     "measured_data",
     "initial_belief",
@@ -326,6 +327,15 @@ def experiment_list(
         raise TorchfricError(f"{who} needs at least one experiment")
     tuning.check(k)
     return exps
+
+
+def prepared(
+    experiments: Experiment | Sequence[Experiment], tuning: EKFTuning, k: int, who: str
+) -> tuple[list[Experiment], EKFTuning]:
+    """`experiment_list`, and `tuning` resolved against those experiments (`EKFTuning.resolved`:
+    relative variances at the data's velocity scale)."""
+    exps = experiment_list(experiments, tuning, k, who)
+    return exps, tuning.resolved(exps)
 
 
 def measurements(exp: Experiment, measure: str) -> Tensor:

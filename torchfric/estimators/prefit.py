@@ -146,7 +146,9 @@ def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmM
         for lo, hi in spreads:
             hi = max(hi, 10.0 * lo)
             w1 = torch.logspace(math.log10(lo), math.log10(hi), size, dtype=torch.float64) / v_scale
-            w1 = torch.maximum(w1, 1.2 * floor * torch.linspace(1.0, 1.5, size, dtype=torch.float64))
+            w1 = torch.maximum(
+                w1, 1.2 * floor * torch.linspace(1.0, 1.5, size, dtype=torch.float64)
+            )
             variants.append({"w1": w1, "w2": torch.full((size,), fc / size, dtype=torch.float64)})
     elif kind == "polytopic":
         # Pair centres and centre-model widths over two decades of the velocity scale: a narrow
@@ -281,9 +283,7 @@ def _levenberg_marquardt(
         J = jacobian(th)
         JtJ = J.transpose(1, 2) @ J
         g = (J.transpose(1, 2) @ rr.unsqueeze(-1)).squeeze(-1)
-        # Marquardt's scaling by diag(JᵀJ), floored relative to its largest entry (an absolute
-        # floor would act in some units and not in others: the fit must not depend on them)
-        diag = torch.diagonal(JtJ, dim1=1, dim2=2)
+        diag = torch.diagonal(JtJ, dim1=1, dim2=2)  # Marquardt's scaling, floored in its units
         damp = torch.diag_embed(torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)))
         searching = torch.ones(idx.numel(), dtype=torch.bool)
         rel = torch.zeros(idx.numel(), dtype=theta.dtype)

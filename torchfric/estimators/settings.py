@@ -93,7 +93,7 @@ class EKFTuning:
         measure: "both" (q and reconstructed q̇), "position" or "velocity".
         passes: the most off-line passes (paper: 10; default 30, which the likelihood rule
             ends long before on ordinary data: a pass over 30 k samples costs ~35 ms).
-        tolerance: converged, and stop, after a pass that raised the innovation
+        tolerance: the passes end, converged, after a pass that raised the innovation
             log-likelihood by less than this many nats over all records (default 1: a
             likelihood ratio of e); 0 disables the early stop.
         substeps: RK4 sub-steps per sample interval in the prediction.

@@ -51,8 +51,8 @@ from .passes import (
     DIVERGED,
     Filtering,
     PassLedger,
-    experiment_list,
     measured_data,
+    prepared,
     run_passes,
 )
 from .settings import EKFTuning, EnsembleSpec
@@ -160,11 +160,11 @@ def compare_sizes(
     t0 = time.perf_counter()
     if not starts:
         raise TorchfricError("compare_sizes needs at least one size")
-    tuning = tuning or EKFTuning()
     sizes = sorted(starts)
     largest = starts[sizes[-1]]
-    exps = experiment_list(experiments, tuning, largest.num_parameters, "compare_sizes")
-    tuning = tuning.resolved(exps)  # relative variances at the data's velocity scale
+    exps, tuning = prepared(
+        experiments, tuning or EKFTuning(), largest.num_parameters, "compare_sizes"
+    )
     callback = callback or Callback()
     batched = len(sizes) > 1 and nests(starts)
     groups = [(largest, sizes)] if batched else [(starts[s], [s]) for s in sizes]

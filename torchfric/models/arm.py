@@ -21,8 +21,9 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import TorchfricError
-from .friction import Friction, make_friction
+from .friction import Friction
 from .lugre import DYNAMICS, LUGRE_NAMES, lugre_field, lugre_substep, sliding_curve
+from .stored import stored_friction
 
 __all__ = ["ArmModel", "arm_field", "arm_friction", "external_torque"]
 
@@ -263,43 +264,29 @@ class ArmModel(nn.Module):
             i += 1
         return self
 
+    def _per_entry(self, theta: Tensor, friction: Any, arm: Any) -> Tensor:
+        """θ `(..., k)` mapped entry by entry: the friction block by `friction`, the arm block
+        by ``arm(values, log_mask)``."""
+        kf = self._k_friction
+        return torch.cat(
+            [friction(theta[..., :kf]), arm(theta[..., kf:], self.log_mask()[kf:])], -1
+        )
+
     def to_physical(self, theta: Tensor) -> Tensor:
         """`(..., k)` θ in physical units (exp of the log-stored entries; a bounded tanh slope
         through its softplus, `OddTanhFriction.min_slope`)."""
-        kf = self._k_friction
-        mask = self.log_mask()[kf:]
-        arm = theta[..., kf:]
-        return torch.cat(
-            [self.friction.flat_to_physical(theta[..., :kf]), torch.where(mask, arm.exp(), arm)],
-            -1,
-        )
+        return self._per_entry(theta, self.friction.flat_to_physical,
+                               lambda a, m: torch.where(m, a.exp(), a))  # fmt: skip
 
     def from_physical(self, values: Tensor) -> Tensor:
         """Inverse of `to_physical`."""
-        kf = self._k_friction
-        mask = self.log_mask()[kf:]
-        arm = values[..., kf:]
-        return torch.cat(
-            [
-                self.friction.flat_from_physical(values[..., :kf]),
-                torch.where(mask, arm.clamp_min(1e-300).log(), arm),
-            ],
-            -1,
-        )
+        return self._per_entry(values, self.friction.flat_from_physical,
+                               lambda a, m: torch.where(m, a.clamp_min(1e-300).log(), a))  # fmt: skip
 
     def physical_slope(self, theta: Tensor) -> Tensor:
-        """`(..., k)` d(physical value)/dθ entry by entry: exp θ for log-stored entries, the
-        softplus' slope for bounded ones, 1 otherwise (the delta method's scale)."""
-        kf = self._k_friction
-        mask = self.log_mask()[kf:]
-        arm = theta[..., kf:]
-        return torch.cat(
-            [
-                self.friction.flat_slope(theta[..., :kf]),
-                torch.where(mask, arm.exp(), torch.ones_like(arm)),
-            ],
-            -1,
-        )
+        """`(..., k)` d(physical value)/dθ entry by entry (the delta method's scale)."""
+        return self._per_entry(theta, self.friction.flat_slope,
+                               lambda a, m: torch.where(m, a.exp(), torch.ones_like(a)))  # fmt: skip
 
     def split(self, theta: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """θ `(..., k)` → (friction parameters, arm parameters) as physical-valued dicts; a leading
@@ -462,19 +449,7 @@ class ArmModel(nn.Module):
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> ArmModel:
-        f = spec["friction"]
-        # A log-stored parameter whose exp underflowed is stored as 0.0; rebuild it as the
-        # smallest positive double (callers with the exact θ, like load_checkpoint, set it after).
-        lo = float(f["kwargs"].get("min_slope", 0.0))
-        values = {
-            _FRICTION_ARG[f["kind"]].get(k, k.lower()): (
-                [max(x, _TINY) for x in v] if isinstance(v, list) else max(v, _TINY)
-            )
-            if k in _POSITIVE
-            else ([max(x, lo * (1.0 + 1e-12)) for x in v] if lo and k == "W1" else v)
-            for k, v in f["values"].items()
-        }
-        friction = make_friction(f["kind"], int(f["size"]), **f["kwargs"], **values)
+        friction = stored_friction(spec["friction"], spec["log_positive"])
         arm = {
             k: (
                 max(v, _TINY)
@@ -515,12 +490,3 @@ def _external(x: Tensor, u: Tensor, arm: dict[str, Tensor]) -> Tensor:
 
 
 _TINY = 5e-324  # smallest positive double
-_POSITIVE = {"sigma", "Fc", "Fs", "vs"}  # friction parameters stored as logarithms
-
-# Parameter-name → constructor-argument name, per friction kind (for from_spec).
-_FRICTION_ARG: dict[str, dict[str, str]] = {
-    "tanh": {"W1": "w1", "W2": "w2"},
-    "polytopic": {"a": "a", "b": "b", "c": "c", "sigma": "sigma"},
-    "coulomb": {"Fc": "fc"},
-    "stribeck": {"Fc": "fc", "Fs": "fs", "vs": "vs"},
-}

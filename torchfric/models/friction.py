@@ -236,7 +236,9 @@ class OddTanhFriction(Friction):
         super().__init__(log_positive=log_positive)
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:
             raise TorchfricError(f"OddTanhFriction needs n >= 1 neurons, got {n!r}")
-        if not (isinstance(min_slope, (int, float)) and math.isfinite(min_slope) and min_slope >= 0):
+        if not (
+            isinstance(min_slope, (int, float)) and math.isfinite(min_slope) and min_slope >= 0
+        ):
             raise TorchfricError(f"OddTanhFriction min_slope must be >= 0, got {min_slope!r}")
         self.n = n
         self.min_slope = float(min_slope)
