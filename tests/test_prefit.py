@@ -101,7 +101,7 @@ def _lm_one_start(model, theta0, q, v, a, u, iterations, v_stick, rows):  # type
         improved, rel = False, 0.0
         for _ in range(10):
             step = torch.linalg.solve(
-                JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12)), -g
+                JtJ + lam * torch.diag(torch.diagonal(JtJ).clamp_min(1e-12 * float(torch.diagonal(JtJ).max()))), -g
             )
             cand = torch.maximum(torch.minimum(theta + step, hi), lo)
             r_new = residual(cand)

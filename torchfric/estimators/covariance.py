@@ -1,36 +1,29 @@
-"""Parameter covariance from the prediction-error likelihood: what a ± σ should mean.
+"""The prediction-error stage of an EKF run: what its ± σ mean.
 
 The augmented EKF ends every pass with a ``P_θθ``, but that is the filter's belief after it has
-absorbed the same data once per pass under an assumed noise model (Q, R); on synthetic axes its
-σ was 10–1000× narrower than the real error. The covariance reported instead is the one of the
-*prediction-error estimate*: θ fixed, the filter on ``[q, q̇(, z)]`` alone yields one-step
-innovations ``e_t(θ)`` with covariances ``S_t(θ)`` and the log-likelihood
+absorbed the same data once per pass under an assumed noise model (Q, R); on an independent
+axis its σ were 10–1000× narrower than the real error. What a run reports instead
+(`torchfric.app.confidence`) is built here, with θ held fixed (``P_θθ = 0``) and q as the one
+measured channel:
 
-    ℓ(θ) = Σ_t ℓ_t(θ),      ℓ_t = −½ (e_tᵀ S_t⁻¹ e_t + ln det S_t + m ln 2π)
+1. `noise_model`: the Q and R factors under which the fixed-θ filter's innovations are most
+   likely (a grid, one batch of the ensemble's compiled masked step).
+2. `innovations`: per sample the innovation ``e_t(θ)`` and its variance ``S_t(θ)`` (the
+   single filter's compiled step; ``S_t`` from its NIS and log-likelihood outputs).
+3. `pem_covariance`: the criterion ``V(θ) = Σ_t e_t²/S_t``; sensitivities ``∂e_t/∂θ`` by central
+   differences of 2k + 1 filters; per-sample scores, the Gauss–Newton information
+   ``I = Σ ∂eᵀ∂e / S`` (positive semi-definite by construction), the long-run covariance J of
+   the scores summed over blocks (`torchfric.estimators.sandwich`) and the *sandwich*
+   ``Cov[θ̂] = I⁻¹ J I⁻¹``. Why not ``I⁻¹`` alone: the noise model is still a model (the
+   innovations are not white), and ``I⁻¹`` is then wrong in scale and shape; J is measured from
+   the data's own scores.
+4. `pem_refine`: Gauss–Newton steps on V from the kept θ to the prediction-error estimate,
+   whose spread that covariance describes.
 
-over every sample of every identification record. At the kept θ̂ we compute
-
-* the observed information ``I = −∇²ℓ(θ̂)`` (`k × k`), and
-* the long-run covariance of the score ``J = Cov[Σ_t ∇ℓ_t]``, estimated from the scores of
-  blocks of consecutive samples with a Bartlett (Newey–West) kernel over blocks,
-
-and report the *sandwich* ``Cov[θ̂] = I⁻¹ J I⁻¹`` (White's robust form). Why not ``I⁻¹`` alone:
-that is the covariance only when the likelihood is the data's true density. Here it is not: R
-is a tuning (the paper's 1e-3 rad² is 10⁴ times an encoder's quantisation variance), the
-reconstructed velocity shares the position's noise, and the innovations of a filter with
-assumed Q and R are correlated over many samples. ``I⁻¹`` is then wrong in scale and shape;
-the sandwich stays right in both, because ``J`` is measured from the data's own scores.
-
-Derivatives are central differences of ℓ over a batch of fixed-θ filters (the ensemble's
-compiled masked step, one member per perturbed θ, `P_θθ = 0` so that θ stays put): step
-sizes are set from a first diagonal pass to about half a marginal standard deviation, where the
-differences are far above rounding (ℓ is smooth in θ for a fixed data record) and truncation
-is small. `tests/test_covariance.py` checks the derivatives against autograd's Hessian of the
-same likelihood on a short record.
-
-Directions the data cannot separate show up as a near-singular ``I``: the correlation matrix
-of the covariance and the eigen-decomposition of the scaled information name them
-(`Identifiability`).
+`tests/test_covariance.py` checks the innovations, the information, the gradient, the Newton
+step and the score covariance against a 2-state EKF written from scratch and differentiated by
+autograd. Directions the data cannot separate show up as a near-singular ``I``; they are named
+by `identifiability`.
 """
 
 from __future__ import annotations
@@ -291,6 +284,11 @@ def pem_covariance(
     minus = [run(theta - h[j] * _unit(k, j)) for j in range(k)]
     info, block_scores, segment, loglik, samples = _sums(base, plus, minus, h, block)
     scores = torch.stack(block_scores)
+    if scores.shape[0] <= 2 * k:
+        raise TorchfricError(
+            f"{scores.shape[0]} blocks of samples for {k} parameters: too few to measure the "
+            "score's covariance, so no σ can be given; use a longer record (or smaller blocks)"
+        )
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
     inv = _inverse(info)

@@ -226,6 +226,13 @@ def _slope_bounds(model: ArmModel, v_stick: float) -> tuple[Tensor, Tensor]:
     return lo, hi
 
 
+def _scale(model: ArmModel, arm: dict[str, Tensor]) -> Tensor:
+    """The residual's factor on the acceleration error: M (a torque residual), or M / c_m
+    when c_m is estimated (in units of u: a torque residual would fall to 0 as c_m, M, b and C
+    shrink together)."""
+    return arm["inertia"] / arm["c_m"] if model.estimate_c_m else arm["inertia"]
+
+
 def _levenberg_marquardt(
     model: ArmModel,
     thetas: Tensor,
@@ -236,8 +243,9 @@ def _levenberg_marquardt(
     iterations: int,
     v_stick: float,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Minimise ‖c_m u − M a − (b v + C(v) + offset + g sin q)‖² over θ (estimation coords),
-    projected onto `_slope_bounds`, from S starts `thetas (S, k)` at once.
+    """Minimise ‖c_m u − M a − (b v + C(v) + offset + g sin q)‖² (÷ c_m² when c_m is estimated,
+    `_scale`) over θ (estimation coords), projected onto `_slope_bounds`, from S starts
+    `thetas (S, k)` at once.
 
     Each start runs its own Levenberg–Marquardt iteration (its own damping λ, its own stop)
     exactly as it would alone; the starts only share the batched arithmetic (`vmap`), which
@@ -249,11 +257,11 @@ def _levenberg_marquardt(
     def residual(theta: Tensor) -> Tensor:
         # The field times M is the net torque c_m u − friction − ...: residual = M·(q̈_model − q̈).
         _, arm = model.split(theta)
-        return (model.vector_field(x, u, theta)[:, 1] - a) * arm["inertia"]
+        return (model.vector_field(x, u, theta)[:, 1] - a) * _scale(model, arm)
 
     def sample_residual(theta: Tensor, x1: Tensor, u1: Tensor, a1: Tensor) -> Tensor:
         _, arm = model.split(theta)
-        return (model.vector_field(x1, u1, theta)[1] - a1) * arm["inertia"]
+        return (model.vector_field(x1, u1, theta)[1] - a1) * _scale(model, arm)
 
     # J's rows are per-sample gradients: one batched reverse pass over the samples
     # (`vmap(grad)`) gives the same Jacobian as `jacfwd` (to rounding) 3–4× faster here, where
@@ -404,6 +412,7 @@ def prefit(
         )
     cost, fitted, its = best
     c_m = float(model.c_m.detach())
-    rms = math.sqrt(cost / q.numel())
-    rel = math.sqrt(cost) / max(float((c_m * u).norm()), 1e-300)
+    c_fit = float(fitted.c_m.detach()) if model.estimate_c_m else 1.0  # torque units
+    rms = c_fit * math.sqrt(cost / q.numel())
+    rel = c_fit * math.sqrt(cost) / max(float((c_m * u).norm()), 1e-300)
     return PrefitResult(fitted, rms, rel, q.numel(), its)
