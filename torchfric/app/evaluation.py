@@ -124,7 +124,7 @@ def result_warnings(
         out.append(
             f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with the "
             f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
-            f"= {cfg.estimator.tolerance:g}: raise estimator.passes (each pass over "
+            f"{cfg.estimator.tolerance:g} × the parameters: raise estimator.passes (each pass over "
             f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
             "meanwhile"
         )

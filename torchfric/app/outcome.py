@@ -191,13 +191,13 @@ def parameter_lines(table: dict[str, Any], limit: int = 12) -> list[str]:
 
 _STOPPED = {
     "converged": "converged in {total} {units}: the last raised the innovation log-likelihood "
-    "by {gain} (below estimator.tolerance = {tolerance} nats)",
+    "by {gain} nats (below estimator.tolerance {tolerance} × the parameters)",
     "early": "converged: the validation score stopped improving (estimator.patience)",
     "rolled_back": "converged in {total} {units}: the last lowered the innovation likelihood "
     "and was undone, so the pass before is the filter's best fit of the data",
     "budget": "NOT converged: the last of all {total} {units} still raised the innovation "
-    "log-likelihood by {gain} nats (estimator.tolerance {tolerance}); raise estimator.passes; "
-    "the kept pass is the one that {kept_by}",
+    "log-likelihood by {gain} nats (estimator.tolerance {tolerance} × the parameters); raise "
+    "estimator.passes; the kept pass is the one that {kept_by}",
     "budget_oe": "NOT converged: the validation score was still improving at the last of the "
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
     "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "

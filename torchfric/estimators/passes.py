@@ -9,9 +9,11 @@ Both estimators filter every experiment once per pass and then judge the pass, m
   rolled back (with `EKFTuning.rollback`): θ and ``P_θθ`` return to the best pass and the member
   stops;
 * otherwise the pass becomes the member's best, and the member has converged when the pass
-  raised the innovation log-likelihood by less than `EKFTuning.tolerance` (in nats over all
-  records; ``tolerance > 0``; 1 by default: a likelihood ratio of e, which no test tells apart
-  from no change). A rolled-back member has converged too: the pass before was its best fit.
+  raised the innovation log-likelihood by less than ``tolerance · k`` nats over all records
+  (`EKFTuning.tolerance`, ``> 0``; k the number of parameters). The default 0.5 is the
+  likelihood-ratio yardstick: k parameters fitted to pure noise raise the log-likelihood by
+  about k/2 (2Δℓ ~ χ²_k), so a smaller gain is no improvement any test could tell from none.
+  A rolled-back member has converged too: the pass before was its best fit.
 
 Why the likelihood and not θ: each pass re-reads the same data, so ``P_θθ`` shrinks and θ keeps
 creeping by ~1 % a pass (measured on the rig) long after the fit stopped improving; a relative
@@ -174,7 +176,8 @@ class PassLedger:
 
     def __init__(self, model: ArmModel, tuning: EKFTuning, theta: Tensor, P_theta: Tensor) -> None:
         K = theta.shape[0]
-        self.model, self.rollback, self.tolerance = model, tuning.rollback, tuning.tolerance
+        self.model, self.rollback = model, tuning.rollback
+        self.tolerance = tuning.tolerance * model.num_parameters  # nats a pass (module docstring)
         self.theta, self.P_theta = theta, P_theta
         self.status, self.reasons = [RUNNING] * K, [""] * K
         self.histories: list[list[PassRecord]] = [[] for _ in range(K)]
@@ -194,7 +197,7 @@ class PassLedger:
         """One member resuming after the completed passes `history`, at `theta` (k,) and
         `P_theta` (k, k) (the single EKF's ``start``). Its status is read off the last record:
         rolled back when it was (a rolled-back pass never counts as converged, as in an
-        uninterrupted run), else converged when its change of θ is below the tolerance."""
+        uninterrupted run), else converged when its gain is below the tolerance."""
         ledger = cls(model, tuning, theta.clone()[None], P_theta.clone()[None])
         if history:
             last = history[-1]
@@ -205,7 +208,7 @@ class PassLedger:
             before = kept[-2].loglik if len(kept) >= 2 else -math.inf
             if last.rolled_back:
                 ledger.status[0] = ROLLED_BACK
-            elif tuning.tolerance > 0 and last.loglik - before < tuning.tolerance:
+            elif ledger.tolerance > 0 and last.loglik - before < ledger.tolerance:
                 ledger.status[0] = CONVERGED
         return ledger
 
@@ -284,7 +287,7 @@ class PassLedger:
         self, i: int, record: PassRecord, theta: Tensor, P_theta: Tensor
     ) -> None:
         """The rollback rule (a relative margin of 1e-6 below the best log-likelihood), else
-        the new best pass and the convergence rule (a gain below `tolerance` nats); appends
+        the new best pass and the convergence rule (a gain below ``tolerance · k`` nats); appends
         `record` to member i's history."""
         ll_best = float(self.best_ll[i])
         if self.rollback and self.histories[i] and record.loglik < ll_best - 1e-6 * abs(ll_best):

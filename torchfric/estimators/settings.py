@@ -94,8 +94,9 @@ class EKFTuning:
         passes: the most off-line passes (paper: 10; default 30, which the likelihood rule
             ends long before on ordinary data: a pass over 30 k samples costs ~35 ms).
         tolerance: the passes end, converged, after a pass that raised the innovation
-            log-likelihood by less than this many nats over all records (default 1: a
-            likelihood ratio of e); 0 disables the early stop.
+            log-likelihood over all records by less than ``tolerance · k`` nats, k the number
+            of parameters (default 0.5: what k parameters fitted to pure noise would gain,
+            2Δℓ ~ χ²_k); 0 disables the early stop.
         substeps: RK4 sub-steps per sample interval in the prediction.
         theta_bound: divergence box on |θ| (estimation coordinates).
         p0_relative: read `p0_theta` in units of each parameter's own size: the initial
@@ -128,7 +129,7 @@ class EKFTuning:
     r: tuple[float, ...] = (1e-3, 1e-2)
     measure: str = "both"
     passes: int = 30
-    tolerance: float = 1.0
+    tolerance: float = 0.5
     substeps: int = 1
     theta_bound: float = 1e6
     compile: bool = True
