@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     records = {k: axis_record(AXIS, seed=args.seed, duration=args.duration, kind=k)
                for k in ("identification", "validation")}  # fmt: skip
     root = Path(tempfile.mkdtemp(prefix="torchfric-units-"))
-    print(f"| data as | M [kg m²] | b [N m s/rad] | validation FIT q / q̇ | passes | converged |")
+    print("| data as | M [kg m²] | b [N m s/rad] | validation FIT q / q̇ | passes | converged |")
     print("|---|---|---|---|---|---|")
     for name, (q_scale, torque, counts) in VARIANTS.items():
         cfg = write(root / name.replace(" ", "_").replace("×", "x"), records, q_scale,
