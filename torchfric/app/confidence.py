@@ -49,13 +49,15 @@ def attach_covariance(
     """Replace ``state["P_theta"]`` by the sandwich covariance at ``state["theta"]`` and add
     ``covariance`` and ``identifiability`` to `extra` (see the module docstring). When it
     cannot be computed, the filter's matrix stays and a warning says why."""
-    tuning = _position_only(cfg.estimator.ekf_tuning().resolved(train))
+    run_tuning = cfg.estimator.ekf_tuning().resolved(train)
+    tuning = _position_only(run_tuning)
     q_scale, r_scale = extra.get("tuning_scales", (1.0, 1.0))
     theta = torch.as_tensor(state["theta"], dtype=torch.float64)
     P_filter = torch.as_tensor(state["P_theta"], dtype=torch.float64)
+    # the kept member's filter, in absolute units: what `torchfric track` runs
     state["tuning"] = _tuning_dict(dataclasses.replace(
-        tuning, q_state=tuple(q_scale * x for x in tuning.q_state),  # type: ignore[arg-type]
-        r=tuple(r_scale * x for x in tuning.r)))  # fmt: skip
+        run_tuning, q_state=tuple(q_scale * x for x in run_tuning.q_state),  # type: ignore[arg-type]
+        r=tuple(r_scale * x for x in run_tuning.r)))  # fmt: skip
     try:
         ranked = noise_model(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     except TorchfricError as err:

@@ -243,7 +243,6 @@ def pem_covariance(
     *,
     q_scale: float = 1.0,
     r_scale: float = 1.0,
-    hint: Tensor | None = None,
     block: int | None = None,
 ) -> PEMCovariance:
     """The sandwich covariance of θ̂ = `theta` `(k,)` (module docstring).
@@ -265,7 +264,6 @@ def pem_covariance(
         model, experiments, tuning: the run's model, identification records and EKF tuning
             with one measured channel (with the kept member's `q_scale`, `r_scale`).
         theta: θ̂ in estimation coordinates.
-        hint: unused (kept for callers that pass the filter's σ).
         block: samples per block of the score's long-run covariance (None: about `BLOCKS`
             blocks over all records).
 
@@ -412,7 +410,6 @@ def pem_refine(
     *,
     q_scale: float = 1.0,
     r_scale: float = 1.0,
-    hint: Tensor | None = None,
     iterations: int = 4,
     min_gain: float = 0.05,
 ) -> tuple[Tensor, PEMCovariance, list[float]]:
@@ -427,9 +424,7 @@ def pem_refine(
     falls below `min_gain` nats, when no trial raises ℓ, or after `iterations`.
 
     Returns ``(θ, covariance at θ, ℓ after each accepted step, the first at the start)``."""
-    cov = pem_covariance(
-        model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale, hint=hint
-    )
+    cov = pem_covariance(model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     theta = cov.theta
     trace = [cov.loglik]
     for _ in range(iterations):
