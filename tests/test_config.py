@@ -56,8 +56,12 @@ def test_defaults() -> None:
     assert (m.friction, m.size, m.c_m, m.inertia, m.viscous) == ("tanh", 3, 16.0, 0.03, 0.01)
     assert (m.offset, m.gravity, m.velocity_scale, m.torque_scale) == (None,) * 4
     assert (m.estimate_c_m, m.log_positive, m.init) == (False, True, "prefit")
+    assert m.saturation == 3.0  # tanh weights bounded below by 3 / v95 (issue 31)
     e = c.estimator
-    assert (e.method, e.passes, e.tolerance) == ("ekf", 10, 1e-4)
+    # up to 30 passes, stopping after one that raises the log-likelihood by < 0.5 nat per
+    # parameter (issue 31)
+    assert (e.method, e.passes, e.tolerance) == ("ekf", 30, 0.5)
+    assert (e.units, e.p0_relative, e.rollback) == ("relative", False, True)
     assert (e.p0_state, e.p0_theta, e.q_state, e.q_theta) == ((0.0, 0.0), 1.0, (0.0, 1e-3), 0.0)
     assert (e.r, e.measure, e.substeps, e.theta_bound) == ((1e-3, 1e-2), "both", 1, 1e6)
     assert (e.epochs, e.lr, e.window, e.batch) == (200, 0.01, 200, 64)  # = OETuning defaults
@@ -269,9 +273,15 @@ def test_sections_validate_on_construction() -> None:
             "[estimator]\npasses = 0",
             [],
             r"estimator\.passes = 0 is out of range; allowed: an "
-            r"integer >= 1 \(the default is 10\)",
+            r"integer >= 1 \(the default is 30\)",
         ),
         ("[estimator]\ntolerance = -1", [], r"estimator\.tolerance = -1\.0 is out of range"),
+        (
+            '[estimator]\nunits = "si"',
+            [],
+            r'estimator\.units = "si" is not allowed; choose one of "relative", "absolute"',
+        ),
+        ("[model]\nsaturation = -1", [], r"model\.saturation = -1\.0 is out of range; allowed: a"),
         ("[model]\nsize = 0", [], r"model\.size = 0 is out of range"),
         ('[model]\ndynamic = "dahl"', [], r'model\.dynamic = "dahl" is not allowed; choose one of "none", "lugre"'),
         ("[model]\ndynamic = true", [], r'model\.dynamic = true is a boolean, expected one of "none", "lugre"'),

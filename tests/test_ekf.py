@@ -695,8 +695,9 @@ def short_exp() -> Experiment:
 
 def _tuning(**kwargs) -> EKFTuning:
     # the eager step unless a test asks for the compiled one (the API's default since the layout
-    # issue), so that compiled-versus-eager tests compare two paths
-    base = {"passes": 3, "tolerance": 0.0, "p0_theta": 0.05, "compile": False}
+    # issue), so that compiled-versus-eager tests compare two paths; the numbers as written
+    # (units = "absolute"), since these tests redo the paper's arithmetic with the given Q/R/P0
+    base = {"passes": 3, "tolerance": 0.0, "p0_theta": 0.05, "compile": False, "units": "absolute"}
     return EKFTuning(**(base | kwargs))
 
 
@@ -822,44 +823,68 @@ def test_resume_after_one_pass_equals_an_uninterrupted_run(short_exp: Experiment
     assert done.passes == 2 and torch.equal(done.theta, full.theta)
 
 
-def test_resume_after_a_rolled_back_pass_stops_unconverged(short_exp: Experiment) -> None:
-    """A rolled-back pass ends the run unconverged, even when its θ change was below the
-    tolerance; a resume from that history must say the same as the run that wrote it."""
+def test_resume_after_a_rolled_back_pass_stops_converged(short_exp: Experiment) -> None:
+    """A rolled-back pass ends the run, and counts as converged (the pass before it was the
+    best fit), whatever the tolerance, even 0 (no early stop); a resume from that history must
+    say the same as the run that wrote it and run nothing more."""
     model = _small_start()
     first = identify_ekf(model, short_exp, _tuning(passes=1))
-    last = dataclasses.replace(first.history[-1], rolled_back=True, rel_change=0.0)
-    resumed = identify_ekf(
-        model,
-        short_exp,
-        _tuning(passes=3, tolerance=1e-3),
-        start=(first.theta, first.P_theta, [last]),
-    )
-    assert resumed.passes == 1  # nothing more runs after a rollback
-    assert resumed.converged is False
-    assert torch.equal(resumed.theta, first.theta)
+    kept = first.history[-1]
+    undone = dataclasses.replace(kept, index=2, rolled_back=True, loglik=kept.loglik - 10.0)
+    for tolerance in (0.0, 1.0):
+        resumed = identify_ekf(
+            model,
+            short_exp,
+            _tuning(passes=4, tolerance=tolerance),
+            start=(first.theta, first.P_theta, [kept, undone]),
+        )
+        assert resumed.passes == 2  # nothing more runs after a rollback
+        assert resumed.converged is True
+        assert torch.equal(resumed.theta, first.theta)
+        assert torch.equal(resumed.P_theta, first.P_theta)
 
 
 def test_early_stop_and_tolerance_zero(short_exp: Experiment) -> None:
+    """Converged, and stop, after the first pass that raises the innovation log-likelihood by
+    less than ``tolerance · k`` nats (k parameters); the first pass never does (it raises it
+    from nothing)."""
     model = _small_start()
-    stopped = identify_ekf(model, short_exp, _tuning(passes=3, tolerance=1.0))
-    assert stopped.passes == 1 and stopped.converged
-    assert stopped.history[0].rel_change < 1.0
-    rec = _Recorder(stop_after=1)
-    by_callback = identify_ekf(model, short_exp, _tuning(passes=3), callback=rec)
-    assert by_callback.passes == 1 and len(rec.records) == 1
+    k = model.num_parameters
+    assert k == 8
+    full = identify_ekf(model, short_exp, _tuning(passes=5, tolerance=0.0))
+    gains = [b.loglik - a.loglik for a, b in zip(full.history[:-1], full.history[1:], strict=True)]
+    # on this record: +6.7 then +0.73 nats; 0.5 nat × 8 parameters = 4 nats stops after pass 3,
+    # and 1 nat × 8 = 8 nats after pass 2 (a flat tolerance of 1 nat would have gone on)
+    assert 0.5 * k > gains[1] > 0.0 and 1.0 * k > gains[0] >= 0.5 * k and gains[0] > 1.0
+    stopped = identify_ekf(model, short_exp, _tuning(passes=5, tolerance=0.5))
+    assert stopped.passes == 3 and stopped.converged
+    assert [r.loglik for r in stopped.history] == [r.loglik for r in full.history[:3]]
+    sooner = identify_ekf(model, short_exp, _tuning(passes=5, tolerance=1.0))
+    assert sooner.passes == 2 and sooner.converged
+    # a huge tolerance still runs two passes: the first has no gain to judge
+    loose = identify_ekf(model, short_exp, _tuning(passes=5, tolerance=1e9))
+    assert loose.passes == 2 and loose.converged
+    rec = _Recorder(stop_after=3)
+    by_callback = identify_ekf(model, short_exp, _tuning(passes=5), callback=rec)
+    assert by_callback.passes == 3 and len(rec.records) == 3 and not by_callback.converged
     torch.testing.assert_close(by_callback.theta, stopped.theta, rtol=0, atol=0)
-    # tolerance = 0 disables the early stop even when θ no longer changes at all.
+    # tolerance = 0 disables the early stop even when the fit no longer changes at all
     frozen = identify_ekf(model, short_exp, _tuning(passes=2, tolerance=0.0, p0_theta=0.0))
     assert frozen.passes == 2 and not frozen.converged
     assert frozen.history[-1].rel_change == 0.0
+    assert frozen.history[-1].loglik == frozen.history[0].loglik
+    # ... which any tolerance > 0 calls converged after its second pass
+    still = identify_ekf(model, short_exp, _tuning(passes=3, tolerance=1e-9, p0_theta=0.0))
+    assert still.passes == 2 and still.converged
     # Resuming a converged history does not run more passes.
     again = identify_ekf(
         model,
         short_exp,
-        _tuning(passes=3, tolerance=1.0),
+        _tuning(passes=5, tolerance=0.5),
         start=(stopped.theta, stopped.P_theta, stopped.history),
     )
-    assert again.passes == 1 and again.converged
+    assert again.passes == 3 and again.converged
+    assert torch.equal(again.theta, stopped.theta)
 
 
 def test_progress_stretches_do_not_change_the_arithmetic(short_exp: Experiment) -> None:

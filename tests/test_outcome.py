@@ -16,8 +16,11 @@ import torchfric
 from torchfric.app.api import fit, override_strings
 from torchfric.app.checkpoint import read_checkpoint
 from torchfric.app.cli import main
+from torchfric.app.config import Config
+from torchfric.app.loading import load_data
 from torchfric.app.outcome import keep_best, parameter_table, summary_lines
 from torchfric.errors import TorchfricError
+from torchfric.estimators.metrics import score_simulation
 from torchfric.estimators.passes import EKFResult, PassRecord
 from torchfric.estimators.uncertainty import parameter_std
 from torchfric.models.arm import ArmModel
@@ -125,20 +128,51 @@ def test_fit_runs_the_cli_train_and_keeps_the_best_validated_pass(tmp_path: path
     assert result.run_dir == tmp_path / "runs" / "short"
     m = json.loads((result.run_dir / "metrics.json").read_text())
     assert m == json.loads(json.dumps(result.metrics))
-    # every pass was scored on the validation record; the kept one scores highest
-    hist = read_checkpoint(result.checkpoint)["estimator"]["state"]["history"]
-    scores = [h["val_score"] for h in hist]
+    # every pass that was not rolled back was scored on the validation record; the kept one
+    # scores highest (a rolled-back pass is undone: never scored, never kept)
+    ckpt = read_checkpoint(result.checkpoint)
+    state = ckpt["estimator"]["state"]
+    hist = state["history"]
+    assert all((h["val_score"] is None) == h["rolled_back"] for h in hist)
+    scores = [h["val_score"] if not h["rolled_back"] else -math.inf for h in hist]
     assert m["best_pass"] == 1 + max(range(len(scores)), key=lambda i: (scores[i], i))
-    fit_v = m["validation"]["validation"]
-    assert 0.5 * (fit_v["fit_q"] + fit_v["fit_qdot"]) == pytest.approx(max(scores), abs=1e-9)
     kept = torch.tensor(hist[m["best_pass"] - 1]["theta"], dtype=torch.float64)
-    torch.testing.assert_close(result.model.get_theta(), kept, rtol=0, atol=0)
-    assert m["converged"] is False and m["stopped"] == "budget"  # tolerance 0: never converges
-    # parameters ± σ from the kept pass's own covariance
-    P = torch.tensor(hist[m["best_pass"] - 1]["P_theta"], dtype=torch.float64)
-    expected = parameter_std(result.model, P)
+    fit_v = m["validation"]["validation"]
+    # The final model is the kept pass's θ, polished by prediction-error steps when metrics
+    # say so (the filter's θ stays as filter_theta); its validation FIT is its own.
+    torch.testing.assert_close(result.model.get_theta(), ckpt["theta"], rtol=0, atol=0)
+    if "polished" in m:
+        torch.testing.assert_close(state["filter_theta"], kept, rtol=0, atol=0)
+        assert m["polished"]["steps"] >= 1 and m["polished"]["loglik_gain"] > 0
+        cfg = Config.load(result.run_dir / "config.toml")
+        (val,) = load_data(cfg)[1]
+        ref = score_simulation(result.model, val)
+        assert fit_v["fit_q"] == pytest.approx(ref.fit_q, abs=1e-6)
+        assert fit_v["fit_qdot"] == pytest.approx(ref.fit_qdot, abs=1e-6)
+    else:
+        torch.testing.assert_close(result.model.get_theta(), kept, rtol=0, atol=0)
+        assert 0.5 * (fit_v["fit_q"] + fit_v["fit_qdot"]) == pytest.approx(max(scores), abs=1e-9)
+    # tolerance 0: only a rolled-back pass ends the passes as converged
+    if hist[-1]["rolled_back"]:
+        assert m["converged"] is True and m["stopped"] == "rolled_back"
+    else:
+        assert m["converged"] is False and m["stopped"] == "budget"
+    # parameters ± σ from the run's covariance at the final θ (the prediction-error sandwich);
+    # the filter's own P_θθ of the kept pass stays beside it
+    torch.testing.assert_close(
+        state["filter_P_theta"],
+        torch.tensor(hist[m["best_pass"] - 1]["P_theta"], dtype=torch.float64),
+        rtol=0,
+        atol=0,
+    )
+    assert m["covariance"]["method"] == "sandwich"
+    expected = parameter_std(result.model, torch.as_tensor(state["P_theta"], dtype=torch.float64))
     for name, entry in m["parameters"].items():
-        assert entry["std"] == pytest.approx(expected[name], rel=1e-12) and entry["std"] > 0
+        if expected[name] == 0.0:  # no information (a pseudo-inverse direction): no σ, named
+            assert entry["std"] is None
+            assert any(name in line for line in m["identifiability"]["messages"]), name
+        else:
+            assert entry["std"] == pytest.approx(expected[name], rel=1e-12) and entry["std"] > 0
     assert m["inertia"] == m["parameters"]["inertia"]["value"]
     # a second fit never overwrites the first run
     again = fit(str(_config(tmp_path)), quiet=True, estimator={"passes": 1}, data={"stop": 1500})
@@ -161,7 +195,21 @@ def test_train_prints_a_summary_and_json_has_sigma_best_pass_and_files(
     assert err == ""  # --quiet: no progress
     m = json.loads((tmp_path / "runs" / "short" / "metrics.json").read_text())
     assert f"kept pass {m['best_pass']} of 3 (best validation FIT)" in out
-    assert "NOT converged" in out
+    state = read_checkpoint(tmp_path / "runs" / "short" / "short.pt")["estimator"]["state"]
+    hist = state["history"]
+    # tolerance 0: not converged after all 3 passes, unless the last was rolled back
+    undone = hist[-1]["rolled_back"]
+    if undone:
+        assert (
+            "converged in 3 passes: the last lowered the innovation likelihood and was undone, "
+            "so the pass before is the filter's best fit of the data"
+        ) in out
+    else:
+        gain = f"{hist[-1]['loglik'] - hist[-2]['loglik']:.2g}"
+        assert (
+            f"NOT converged: the last of all 3 passes still raised the innovation log-likelihood "
+            f"by {gain} nats (estimator.tolerance 0 × the parameters); raise estimator.passes"
+        ) in out
     inertia = m["parameters"]["inertia"]
     assert f"inertia  {inertia['value']:.6g} ± {inertia['std']:.2g}" in out
     assert "validation FIT (validation): q" in out and "report" in out
@@ -170,7 +218,7 @@ def test_train_prints_a_summary_and_json_has_sigma_best_pass_and_files(
     m2 = json.loads((tmp_path / "runs" / "short-2" / "metrics.json").read_text())
     assert js["best_pass"] == m2["best_pass"] and js["parameters"] == m2["parameters"]
     assert set(js["parameters"]["inertia"]) == {"value", "std"}
-    assert js["converged"] is False and js["run_dir"].endswith("short-2")
+    assert js["converged"] is undone and js["run_dir"].endswith("short-2")
     assert pathlib.Path(js["files"]["metrics"]).is_file()
     # evaluate shows the same σ from the checkpoint
     assert main(["evaluate", js["checkpoint"], "rig:validation", "--json"]) == 0

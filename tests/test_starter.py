@@ -101,8 +101,8 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert re.search(r"^validation  none$", out, re.M)
     assert "highpass (causal high-pass differentiator, cut-off 200 Hz)" in out
     assert "tanh friction, size 3, 8 parameters, c_m 16 (known, fixed)" in out
-    assert "ekf: up to 10 passes (tolerance 0.0001), ensemble of 9 filters" in out
-    assert "4000 samples × 10 passes × 9 filter(s) = 360,000 filter steps" in out
+    assert "ekf: up to 30 passes (tolerance 0.5), ensemble of 9 filters" in out
+    assert "4000 samples × 30 passes × 9 filter(s) = 1,080,000 filter steps" in out
     inertia = float(re.search(r"pre-fit on the identification data: inertia (\S+),", out)[1])
     assert inertia == pytest.approx(M, rel=0.02)  # the simulated arm's
 
@@ -110,7 +110,7 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert main(["check", "rec.toml", "--set", "estimator.passes=3", "--set", "estimator.ensemble=0"]) == 0  # fmt: skip
     out = capsys.readouterr().out
     assert f"rec → {pathlib.Path('runs') / 'rec-2'}" in out
-    assert "ekf: up to 3 passes (tolerance 0.0001), one filter" in out
+    assert "ekf: up to 3 passes (tolerance 0.5), one filter" in out
     assert "4000 samples × 3 passes × 1 filter(s) = 12,000 filter steps" in out
     assert "torchfric train rec.toml --set estimator.passes=3 --set estimator.ensemble=0" in out
     assert not (user / "runs" / "rec-2").exists()

@@ -11,6 +11,7 @@ import pathlib
 import pytest
 from rig_configs import rig_config
 
+from torchfric.app.checkpoint import read_checkpoint
 from torchfric.app.cli import main
 from torchfric.app.config import Config
 from torchfric.errors import TorchfricError
@@ -109,10 +110,19 @@ def test_pruned_trials_stop_early_and_are_recorded(tmp_path):
         assert (r["state"], r["pruned_at"]) == ("PRUNED", "1")
         metrics = json.loads((pathlib.Path(r["run_dir"]) / "metrics.json").read_text())
         assert metrics["passes"] == 1  # the run stopped after the pruned pass
-        fits = list(metrics["validation"].values())
-        assert float(r["score"]) == pytest.approx(
-            sum(0.5 * (f["fit_q"] + f["fit_qdot"]) for f in fits) / len(fits), rel=1e-12
-        )
+        # a pruned trial's score is what it reported: the validation score of its pass 1
+        ckpt = read_checkpoint(pathlib.Path(r["run_dir"]) / "short.pt")
+        (record,) = ckpt["estimator"]["state"]["history"]
+        assert float(r["score"]) == pytest.approx(record["val_score"], rel=1e-12)
+        # ... which is the run's final validation FIT unless the prediction-error polish moved
+        # the kept θ (then the final model's own FIT is reported)
+        if "polished" not in metrics:
+            fits = list(metrics["validation"].values())
+            assert float(r["score"]) == pytest.approx(
+                sum(0.5 * (f["fit_q"] + f["fit_qdot"]) for f in fits) / len(fits), rel=1e-12
+            )
+        else:  # the reported score is that of the filter's θ, kept beside the polished one
+            assert ckpt["estimator"]["state"]["filter_theta"].tolist() == record["theta"]
 
 
 def test_a_failing_trial_is_recorded_and_the_sweep_goes_on(tmp_path):

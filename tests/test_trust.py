@@ -157,12 +157,17 @@ def test_result_warnings_name_what_is_almost_certainly_wrong() -> None:
     fine = {"inertia": 0.03, "initial_inertia": 0.029, "converged": True, "passes": 4,
             "validation": {"v": {"fit_q": 90.0}}}  # fmt: skip
     assert result_warnings(cfg, model, fine, "prefit") == []
-    bad = {"inertia": 0.03, "initial_inertia": 0.005, "converged": False, "passes": 10,
-           "validation": {"v": {"fit_q": -105.0}}, "test": {"x": {"fit_q": None}}}  # fmt: skip
+    bad = {"inertia": 0.03, "initial_inertia": 0.005, "converged": False, "passes": 30,
+           "last_gain": 3.25, "validation": {"v": {"fit_q": -105.0}},
+           "test": {"x": {"fit_q": None}}}  # fmt: skip
     text = " | ".join(result_warnings(cfg, model, bad, "prefit"))
     assert "6× the pre-fit's" in text
     assert "validation v: FIT on q is -105.0 %" in text and "test x: FIT on q is None" in text
-    assert "pass limit (estimator.passes = 10)" in text
+    assert (
+        "stopped at the pass limit (estimator.passes = 30) with the innovation log-likelihood "
+        "still rising by 3.25 nats a pass, above estimator.tolerance 0.5 × the parameters: "
+        "raise estimator.passes"
+    ) in text
 
 
 # -- 2. runs never destroy what the user has ----------------------------------------------------

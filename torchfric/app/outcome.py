@@ -124,10 +124,10 @@ def kept_pass(
     score_passes(result.model, result.history, validation, engine=engine)
     kept, best = keep_best(result, validating=bool(validation))
     last = result.history[-1] if result.history else None
-    if result.converged:
-        stopped = "converged"
-    elif last is not None and last.rolled_back:
+    if last is not None and last.rolled_back:  # converged too: the pass before is the best
         stopped = "rolled_back"
+    elif result.converged:
+        stopped = "converged"
     else:
         stopped = "budget"
     return kept, {
@@ -167,7 +167,9 @@ def parameter_table(model: ArmModel, P_theta: Tensor | None) -> dict[str, dict[s
         P = torch.as_tensor(P_theta, dtype=torch.float64)
         if P.shape == (model.num_parameters,) * 2 and bool(torch.isfinite(P).all()):
             std = parameter_std(model, P)
-    return {n: {"value": v, "std": std.get(n)} for n, v in values.items()}
+    # a σ of exactly 0 is a parameter the data say nothing about (its information is 0 and
+    # the pseudo-inverse left it out): no σ, not perfect certainty (identifiability names it)
+    return {n: {"value": v, "std": std.get(n) or None} for n, v in values.items()}
 
 
 def _value_pm(value: float, std: float | None) -> str:

@@ -297,8 +297,8 @@ _HELP = {
     "inertia": 'Initial guesses of M and b for init = "config".',
     "method": '"ekf" (the paper\'s iterative augmented-state EKF) or "output_error" '
     "(simulation-error training).",
-    "passes": "EKF passes over the data, at most; it stops once a pass changes θ by less than "
-    "`tolerance` (relative; 0: never).",
+    "passes": "EKF passes over the data, at most; they stop, converged, once a pass raises the "
+    "innovation log-likelihood by less than `tolerance` nats per parameter (0: never).",
     "ensemble": "1: the start under 3 Q × 3 R tunings (9 filters), the best kept; 0: one "
     "filter, the paper's method.",
 }

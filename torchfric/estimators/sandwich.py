@@ -91,7 +91,14 @@ class Identifiability:
         """One line per group of parameters the data cannot separate."""
         out = []
         for names, how in self.groups:
-            listed = ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else names[0]
+            if len(names) == 1:
+                out.append(
+                    f"{names[0]} is not determined by this data ({how}): its value is the "
+                    "start's or the estimator's drift, and it has no σ; fix it, drop the term, or "
+                    "excite the machine where it acts"
+                )
+                continue
+            listed = ", ".join(names[:-1]) + f" and {names[-1]}"
             out.append(
                 f"{listed} are not separately identifiable from this data ({how}): they trade "
                 "off against each other, only their combination is determined; fix one, use a "
@@ -115,8 +122,9 @@ def identifiability(information: Tensor, cov: Tensor, names: Sequence[str]) -> I
     directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
     of the largest)."""
     out = Identifiability()
-    d = torch.diagonal(cov).clamp_min(1e-300).sqrt()
-    corr = cov / (d[:, None] * d[None, :])
+    d = torch.diagonal(cov).clamp_min(0.0).sqrt()
+    denom = d[:, None] * d[None, :]
+    corr = torch.where(denom > 0, cov / torch.where(denom > 0, denom, 1.0), 0.0)
     k = len(names)
     for i in range(k):
         for j in range(i + 1, k):
@@ -170,8 +178,10 @@ class PEMCovariance:
 
     @property
     def correlation(self) -> Tensor:
-        d = self.std.clamp_min(1e-300)
-        return self.cov / (d[:, None] * d[None, :])
+        """`(k, k)`; rows and columns of a parameter with σ = 0 (no information) are 0."""
+        d = self.std
+        denom = d[:, None] * d[None, :]
+        return torch.where(denom > 0, self.cov / torch.where(denom > 0, denom, 1.0), 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         return {
