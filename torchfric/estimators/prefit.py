@@ -233,6 +233,20 @@ def _scale(model: ArmModel, arm: dict[str, Tensor]) -> Tensor:
     return arm["inertia"] / arm["c_m"] if model.estimate_c_m else arm["inertia"]
 
 
+def _normal_equations(J: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """``JᵀJ`` `(S, k, k)` and ``Jᵀr`` `(S, k)`, start by start: the same products whether a
+    start runs alone or in a batch (batched BLAS may sum in another order, and LM's trajectory
+    carries the last bit into the fifth digit)."""
+    return torch.stack([j.T @ j for j in J]), torch.stack(
+        [j.T @ x for j, x in zip(J, r, strict=True)]
+    )
+
+
+def _per_start_solve(A: Tensor, b: Tensor) -> Tensor:
+    """``A_s⁻¹ b_s`` for each start, one solve each (as `_normal_equations`)."""
+    return torch.stack([torch.linalg.solve(a, x) for a, x in zip(A, b, strict=True)])
+
+
 def _levenberg_marquardt(
     model: ArmModel,
     thetas: Tensor,
@@ -289,14 +303,13 @@ def _levenberg_marquardt(
         used[idx] = it
         th, rr, c, la = theta[idx], r[idx], cost[idx], lam[idx]
         J = jacobian(th)
-        JtJ = J.transpose(1, 2) @ J
-        g = (J.transpose(1, 2) @ rr.unsqueeze(-1)).squeeze(-1)
+        JtJ, g = _normal_equations(J, rr)
         diag = torch.diagonal(JtJ, dim1=1, dim2=2)  # Marquardt's scaling, floored in its units
         damp = torch.diag_embed(torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)))
         searching = torch.ones(idx.numel(), dtype=torch.bool)
         rel = torch.zeros(idx.numel(), dtype=theta.dtype)
         for _ in range(10):
-            step = torch.linalg.solve(JtJ + la[:, None, None] * damp, -g)
+            step = _per_start_solve(JtJ + la[:, None, None] * damp, -g)
             cand = torch.maximum(torch.minimum(th + step, hi), lo)
             r_new = residuals(cand)
             c_new = (r_new * r_new).sum(-1)
