@@ -201,3 +201,5 @@ def test_an_unidentifiable_model_is_named_in_metrics_and_summary(records, tmp_pa
     named = [m for m in ident["messages"] if "c_m" in m and "inertia" in m]
     assert named and not named[0].startswith("(within")
     assert any("c_m" in w and "inertia" in w for w in result.metrics["warnings"])
+    report = (tmp_path / "run" / "report.html").read_text()
+    assert "<h2>Identifiability</h2>" in report and named[0].split(" are ")[0] in report

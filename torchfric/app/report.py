@@ -114,9 +114,20 @@ def _summary(metrics: Mapping[str, Any], title: str, created: dt.datetime) -> st
 def _warnings(metrics: Mapping[str, Any]) -> str:
     warnings = list(metrics.get("warnings") or [])
     if not warnings:
-        return '<p class="ok">No warnings.</p>'
+        return '<p class="ok">No warnings.</p>' + _identifiability(metrics)
     items = "".join(f"<li>{_e(w)}</li>" for w in warnings)
-    return f'<div class="warn"><h2>Warnings ({len(warnings)})</h2><ul>{items}</ul></div>'
+    block = f'<div class="warn"><h2>Warnings ({len(warnings)})</h2><ul>{items}</ul></div>'
+    return block + _identifiability(metrics)
+
+
+def _identifiability(metrics: Mapping[str, Any]) -> str:
+    """The parameters the data cannot separate, one line per group (metrics.json's
+    ``identifiability``; those with a white-box parameter are among the warnings too)."""
+    lines = (metrics.get("identifiability") or {}).get("messages") or []
+    if not lines:
+        return ""
+    items = "".join(f"<li>{_e(m)}</li>" for m in lines)
+    return f"<h2>Identifiability</h2><ul>{items}</ul>"
 
 
 def _parameters(metrics: Mapping[str, Any]) -> str:
