@@ -1,18 +1,29 @@
-"""The ± σ a run reports: the prediction-error sandwich covariance at the kept θ.
+"""The ± σ a run reports, made after the estimator (issue 31).
 
-An EKF run ends with the filter's own ``P_θθ``; on synthetic axes its σ were 10–1000× narrower
-than the real error (it has absorbed the data once per pass under an assumed noise model).
-`attach_covariance` replaces it, in the run's estimator state, with the covariance of
-`torchfric.estimators.covariance.pem_covariance` — the observed information of the fixed-θ
-innovations' likelihood over all identification records, sandwiched with the measured
-long-run covariance of its score — under the kept member's tuning. The filter's own matrix is
-kept beside it (``filter_P_theta``), so is the tuning the filter ran with, in absolute units
-(``tuning``: what `torchfric track` then uses). Everything that shows a σ (summary, metrics,
-report, the curve's band, `evaluate`) reads ``P_theta`` and so shows the new one.
+An EKF run ends with the filter's own ``P_θθ``; on an independent axis its σ were 10–1000×
+narrower than the real error (it has absorbed the data once per pass under an assumed noise
+model). `attach_covariance` replaces it, in the run's estimator state, by the prediction-error
+stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurement
+(`_position_only`):
 
-metrics.json gains ``covariance`` (method, samples, blocks, the Newey–West bandwidth, the
-correlation matrix, and the Newton step to the likelihood's maximum in σ units) and
-``identifiability`` (pairs with |ρ| > 0.99 and near-null directions, by name).
+1. the noise model: the likeliest Q and R factors over a grid (`noise_model`; of the three
+   likeliest, the first whose filter stays healthy);
+2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
+   (`pem_refine`), kept only when it simulates the validation records (else the
+   identification records) no worse than the kept θ by 0.1 point; otherwise θ stays and the
+   σ is taken at it;
+3. the sandwich covariance there (`pem_covariance`).
+
+The filter's own matrix stays beside it (``filter_P_theta``), so does the kept pass's θ when
+the polish moved it (``filter_theta``) and the kept member's tuning in absolute units
+(``tuning``: what `torchfric track` runs). Everything that shows a σ (summary, metrics,
+report, the curve's band, `evaluate`) reads ``P_theta`` and so shows the new one. An
+output-error run gets the sandwich of its own criterion (`attach_oe_covariance`).
+
+metrics.json gains ``covariance`` (method, samples, blocks, the bandwidth, the correlation
+matrix, the noise model, the Newton step to the criterion's optimum in σ units), ``polished``
+or ``polish_rejected``, and ``identifiability`` (groups of parameters the data cannot
+separate, by name).
 """
 
 from __future__ import annotations
