@@ -51,10 +51,10 @@ lags whose bandwidth adapts to the data: Andrews' (1991) AR(1) plug-in ``S = 1.1
 autocorrelation of component j of the centred block scores (|ρ| ≤ 0.95); lags ``⌊S⌋``, at least 1
 (neighbouring blocks share the memory at their boundary), at most ``B / 4`` (further lags of
 centred block scores mostly add noise and the downward bias of centring), never across two
-experiments (independent records). Why not covariance.py's `_bartlett` as it is: its fixed
-Newey–West rule (3 lags of 30 blocks of 1000) suits the EKF's innovations, whose memory is the
-filter's short one; open-loop residuals carry model error and the disturbance's response over
-seconds (on the rig: q's residual still correlates 0.96 after 1000 samples, q̇'s 0.3 after
+experiments (independent records); `torchfric.estimators.sandwich.long_run_covariance`, shared
+with the EKF's prediction-error form. A fixed Newey–West rule (3 lags of 30 blocks of 1000, this
+module's first version) does not do: open-loop residuals carry model error and the
+disturbance's response over seconds (on the rig: q's residual still correlates 0.96 after 1000 samples, q̇'s 0.3 after
 100), so the lags must follow the data. Why short blocks: with white residuals, long blocks leave
 J to a few dozen terms whose noise makes ``I⁻¹ J I⁻¹`` scatter (coverage of ±2σ was 85–90 % over
 100 white-box fits with 33 blocks, 96–98 % with 280); with correlated residuals the plug-in
