@@ -75,9 +75,9 @@ def attach_covariance(
         ranked, failure = [], err
     for q_scale, r_scale in ranked[:3]:  # the likeliest noise model whose filter stays healthy
         try:
-            polished, pem, trace = pem_refine(
-                final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale, iterations=8
-            )
+            at_kept = pem_covariance(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+            polished, pem, trace = pem_refine(final, train, tuning, theta, q_scale=q_scale,
+                                              r_scale=r_scale, iterations=8, start=at_kept)  # fmt: skip
             break
         except TorchfricError as err:
             failure = err
@@ -97,7 +97,7 @@ def attach_covariance(
         # prediction-error optimum lies (`newton_step_sigma`).
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem = pem_covariance(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+        pem = at_kept
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         final.set_theta(polished)
         state["filter_theta"], state["theta"] = theta, polished.clone()

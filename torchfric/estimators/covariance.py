@@ -412,6 +412,7 @@ def pem_refine(
     r_scale: float = 1.0,
     iterations: int = 4,
     min_gain: float = 0.05,
+    start: PEMCovariance | None = None,
 ) -> tuple[Tensor, PEMCovariance, list[float]]:
     """Newton steps on ℓ from `theta` to the prediction-error estimate, and its covariance.
 
@@ -423,8 +424,12 @@ def pem_refine(
     whichever first raises ℓ. It stops when the step's expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ``
     falls below `min_gain` nats, when no trial raises ℓ, or after `iterations`.
 
+    `start`: the covariance at `theta` when the caller has it already (not computed again).
+
     Returns ``(θ, covariance at θ, ℓ after each accepted step, the first at the start)``."""
-    cov = pem_covariance(model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+    cov = start or pem_covariance(
+        model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale
+    )
     theta = cov.theta
     trace = [cov.loglik]
     for _ in range(iterations):
