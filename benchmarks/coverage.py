@@ -84,7 +84,7 @@ def slope_entry(parameters: dict[str, Any]) -> tuple[str, dict[str, float]] | No
 
 def covariance(checkpoint: Path) -> Any:
     """θ's covariance in estimation coordinates, as the checkpoint stores it (None if absent)."""
-    from torchfric.app.checkpoint import read_checkpoint
+    from torchfric.app.artifacts.checkpoint import read_checkpoint
 
     state = read_checkpoint(checkpoint).get("estimator", {}).get("state", {})
     return state.get("P_theta")

@@ -186,7 +186,7 @@ def main() -> None:
                 raw = torch.load(ckpt, weights_only=True)
                 models[name] = (load_checkpoint(ckpt), raw["metrics"])
             else:
-                from torchfric.app.runner import train
+                from torchfric.app.run import train
 
                 cfg = Config.load(
                     ROOT / "experiments" / "configs" / f"{name}.toml", ["data.test=[]"]

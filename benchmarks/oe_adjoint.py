@@ -37,7 +37,7 @@ torch.set_num_threads(1)
 from torchfric.app.config import Config
 from torchfric.estimators.shooting import full_loss as _full_loss, prepare as _prepare, scales as _scales
 from torchfric.estimators.prefit import prefit
-from torchfric.app.runner import config_model, load_data
+from torchfric.app.run import config_model, load_data
 
 n, method = int(sys.argv[1]), sys.argv[2]
 adjoint, engine = method == "adjoint", "compiled" if method == "compiled" else "odeint"

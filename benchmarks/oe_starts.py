@@ -37,7 +37,7 @@ from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric import EKFTuning, identify_ekf, identify_output_error
 from torchfric.app.config import Config
-from torchfric.app.runner import initial_model, load_data
+from torchfric.app.run import initial_model, load_data
 from torchfric.data.rig import RigParameters
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ensemble import random_thetas

@@ -36,7 +36,7 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.app.config import Config
-from torchfric.app.runner import initial_model, load_data
+from torchfric.app.run import initial_model, load_data
 from torchfric.data.rig import RigParameters
 from torchfric.estimators.ekf import EKFState, FilterFailure, make_propagator, make_step, run_pass
 from torchfric.estimators.metrics import friction_curve_error, score_simulation

@@ -37,7 +37,7 @@ from typing import Any
 import torch
 
 from torchfric import ArmModel, load_checkpoint, load_experiment
-from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.artifacts.checkpoint import read_checkpoint
 from torchfric.app.config import Config
 from torchfric.estimators.metrics import rms, score_benchmark, score_simulation
 from torchfric.models.friction import CoulombFriction
@@ -229,7 +229,7 @@ def train_all(sets: list[str], *, update: bool = False) -> dict[str, pathlib.Pat
     With `update`, each final checkpoint is also copied over the committed
     ``checkpoints/NAME.pt`` (the explicit ``--checkpoint`` step).
     """
-    from torchfric.app.runner import train
+    from torchfric.app.run import train
 
     out = {}
     for key in sets:

@@ -47,7 +47,7 @@ import torch
 from ekf_rig import friction_reference  # (this folder, run as a script)
 
 from torchfric.app.config import Config
-from torchfric.app.runner import config_model, load_data
+from torchfric.app.run import config_model, load_data
 from torchfric.data.rig import RigParameters
 from torchfric.estimators.ensemble import DIVERGED, identify_ekf_ensemble, random_thetas
 from torchfric.estimators.metrics import friction_curve_error

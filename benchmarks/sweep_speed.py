@@ -38,7 +38,7 @@ SPACE = """[space]
 def _sweep(folder: pathlib.Path, cfg: pathlib.Path, sets: list[str], trials: int, jobs: int):
     import optuna
 
-    from torchfric.app.sweep import run_sweep
+    from torchfric.app.sweep.driver import run_sweep
 
     space = folder / "space.toml"
     space.write_text(SPACE, encoding="utf-8")
@@ -62,7 +62,7 @@ def main() -> None:
 
     from rig_configs import rig_config
 
-    from torchfric.app.api import fit
+    from torchfric.app.run.launch import fit
 
     sets = [
         f"estimator.passes={args.passes}",

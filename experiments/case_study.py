@@ -38,12 +38,12 @@ import torch
 from torch import Tensor
 
 from torchfric import ArmModel, Experiment, load_checkpoint, make_experiment, read_checkpoint
-from torchfric.app.export import ExportedArm
 from torchfric.data import zero_phase_acceleration, zero_phase_derivative
 from torchfric.data.rig import RigParameters, rig_experiment
 from torchfric.estimators.metrics import fit_percent, friction_curve_error, rms
 from torchfric.estimators.uncertainty import friction_band
 from torchfric.models.simulate import auto_substeps
+from torchfric.models.torchscript import ExportedArm
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "experiments" / "configs"

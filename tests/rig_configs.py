@@ -6,7 +6,7 @@ from __future__ import annotations
 import pathlib
 from typing import Any
 
-from torchfric.app.toml_io import to_toml
+from torchfric.app.config.toml_io import to_toml
 
 
 def rig_config(

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchfric.app import checkpoint as ck
-from torchfric.app.checkpoint import (
+from torchfric.app.artifacts import checkpoint as ck
+from torchfric.app.artifacts.checkpoint import (
     FORMAT,
     FORMAT_VERSION,
     build_checkpoint,
@@ -295,7 +295,11 @@ def test_save_overwrites_and_refuses_directory(good: pathlib.Path) -> None:
 def test_underflowed_positive_parameter_round_trips(tmp_path) -> None:
     """A log-stored parameter driven so low that exp() underflows to 0.0 still loads, exactly."""
     from torchfric import ArmModel, PolytopicFriction
-    from torchfric.app.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
+    from torchfric.app.artifacts.checkpoint import (
+        build_checkpoint,
+        load_checkpoint,
+        save_checkpoint,
+    )
 
     arm = ArmModel(PolytopicFriction(3), viscous=0.01, c_m=16.0)
     theta = arm.get_theta()

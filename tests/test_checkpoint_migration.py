@@ -1,5 +1,5 @@
 """Every checkpoint is complete and loadable: older formats and older stored configs are
-migrated (`torchfric.app.checkpoint.checkpoint_config`, `_FORMAT_MIGRATIONS`) or refused with one
+migrated (`torchfric.app.artifacts.checkpoint.checkpoint_config`, `_FORMAT_MIGRATIONS`) or refused with one
 line, and every shipped checkpoint in ``checkpoints/`` loads, builds its config, simulates,
 scores and exports (the export simulating as `torchfric.models.simulate` does)."""
 
@@ -13,8 +13,8 @@ import warnings
 import pytest
 import torch
 
-from torchfric.app import checkpoint as ck
-from torchfric.app.checkpoint import (
+from torchfric.app.artifacts import checkpoint as ck
+from torchfric.app.artifacts.checkpoint import (
     FORMAT_VERSION,
     build_checkpoint,
     checkpoint_config,
@@ -23,13 +23,13 @@ from torchfric.app.checkpoint import (
     save_checkpoint,
 )
 from torchfric.app.config import Config
-from torchfric.app.export import export_model, save_exported
 from torchfric.data.experiment import Experiment, make_experiment
 from torchfric.errors import TorchfricError
 from torchfric.estimators.metrics import score_simulation
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import OddTanhFriction
 from torchfric.models.simulate import simulate
+from torchfric.models.torchscript import export_model, save_exported
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "checkpoints").glob("*.pt"))
@@ -177,7 +177,7 @@ def _real_path(stored: str) -> pathlib.Path | None:
 def _experiment(cfg: Config, raw: dict, model: ArmModel) -> Experiment:
     """The first SAMPLES samples of the checkpoint's own validation (else training) data; for a
     real-data file that is not here, a synthetic input at the data's sample time."""
-    from torchfric.app.runner import load_data
+    from torchfric.app.run import load_data
 
     paths = list(cfg.data.validation) + list(cfg.data.train)
     for p in paths:

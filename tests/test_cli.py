@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.artifacts.checkpoint import read_checkpoint
 from torchfric.app.cli import main
 from torchfric.models.arm import ArmModel
 
@@ -143,7 +143,9 @@ def test_figures_every_n_passes_and_always_at_the_start_and_the_kept_pass(
         import re
 
         html = (tmp_path / "runs" / "short" / "report.html").read_text()
-        embedded = [base64.b64decode(b) for b in re.findall(r"data:image/png;base64,([^\"']+)", html)]
+        embedded = [
+            base64.b64decode(b) for b in re.findall(r"data:image/png;base64,([^\"']+)", html)
+        ]
         assert any(
             _pixels(png).shape == _pixels(final).shape and (_pixels(png) == _pixels(final)).all()
             for png in embedded
@@ -167,11 +169,11 @@ def _pixels(png: bytes) -> np.ndarray:
 
 
 def test_auto_figures_follow_the_clock(tmp_path: pathlib.Path, monkeypatch) -> None:
-    """"auto" draws a pass's figures once a minute has passed since the last ones: with that
+    """ "auto" draws a pass's figures once a minute has passed since the last ones: with that
     minute shortened to nothing, every pass."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    from torchfric.app.observers import TensorBoardLog
+    from torchfric.app.run.tensorboard_log import TensorBoardLog
 
     monkeypatch.setattr(TensorBoardLog, "AUTO_SECONDS", 0.0)
     assert main(["train", str(_config(tmp_path)), "--quiet", *SHORT]) == 0
@@ -300,8 +302,14 @@ def test_generate_writes_rig_files(
         (["--set", "estimator.method=output_error", "--set", "estimator.lr_final=1.0"], "lr_final"),
         (["--set", "estimator.schedule=[50, 1]"], "schedule"),
         (
-            ["--set", "estimator.method=output_error", "--set", "estimator.learn_states=true",
-             "--set", "estimator.window=0"],
+            [
+                "--set",
+                "estimator.method=output_error",
+                "--set",
+                "estimator.learn_states=true",
+                "--set",
+                "estimator.window=0",
+            ],
             "learn_states",
         ),  # fmt: skip
     ],
@@ -383,7 +391,7 @@ def test_killed_run_leaves_loadable_snapshots_and_resumes(
     import time
 
     from torchfric.app.config import Config
-    from torchfric.app.runner import load_data
+    from torchfric.app.run import load_data
     from torchfric.estimators.identify import PassRecord, identify_ekf
     from torchfric.models.arm import ArmModel
 
@@ -446,7 +454,9 @@ def test_output_error_resume_continues_from_the_latest_not_the_best_theta(
     assert main(["train", str(cfg), "--quiet", *args]) == 0
     full = read_checkpoint(tmp_path / "runs" / "oe" / "oe.pt")["estimator"]["state"]
     (tmp_path / "runs" / "oe" / "passes" / "epoch_00004.pt").unlink()
-    assert main(["train", str(cfg), "--quiet", *args, "--resume", str(tmp_path / "runs" / "oe")]) == 0
+    assert (
+        main(["train", str(cfg), "--quiet", *args, "--resume", str(tmp_path / "runs" / "oe")]) == 0
+    )
     resumed = read_checkpoint(tmp_path / "runs" / "oe" / "oe.pt")["estimator"]["state"]
     assert full["best_epoch"] == resumed["best_epoch"]
     assert torch.equal(full["theta"], resumed["theta"])

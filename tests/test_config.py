@@ -283,8 +283,16 @@ def test_sections_validate_on_construction() -> None:
         ),
         ("[model]\nsaturation = -1", [], r"model\.saturation = -1\.0 is out of range; allowed: a"),
         ("[model]\nsize = 0", [], r"model\.size = 0 is out of range"),
-        ('[model]\ndynamic = "dahl"', [], r'model\.dynamic = "dahl" is not allowed; choose one of "none", "lugre"'),
-        ("[model]\ndynamic = true", [], r'model\.dynamic = true is a boolean, expected one of "none", "lugre"'),
+        (
+            '[model]\ndynamic = "dahl"',
+            [],
+            r'model\.dynamic = "dahl" is not allowed; choose one of "none", "lugre"',
+        ),
+        (
+            "[model]\ndynamic = true",
+            [],
+            r'model\.dynamic = true is a boolean, expected one of "none", "lugre"',
+        ),
         ("", ["model.dynamic=lugre", "model.sigma0=0"], r"model\.sigma0 = 0\.0 is out of range"),
         ("", ["model.sigma1=-1"], r"model\.sigma1 = -1\.0 is out of range"),
         ("", ["model.stick_velocity=0"], r"model\.stick_velocity = 0\.0 is out of range"),
@@ -320,9 +328,21 @@ def test_sections_validate_on_construction() -> None:
         ('[data]\nposition_unit = "inch"', [], r'data\.position_unit = "inch" is not allowed'),
         ('[simulation]\nmethod = "dopri5"', [], r'simulation\.method = "dopri5" is not allowed'),
         ('[simulation]\nsubsteps = "x"', [], r'expected "auto" or an integer >= 1'),
-        ('[log]\nfigure_every = "often"', [], r'log\.figure_every = "often" is a string, expected "auto" or an integer >= 0'),
-        ("[log]\nfigure_every = -1", [], r"log\.figure_every = -1 is out of range; allowed: an integer >= 0"),
-        ("", ["log.figure_evry=2"], r'unknown key "log\.figure_evry" \(did you mean "log\.figure_every"\?\)'),
+        (
+            '[log]\nfigure_every = "often"',
+            [],
+            r'log\.figure_every = "often" is a string, expected "auto" or an integer >= 0',
+        ),
+        (
+            "[log]\nfigure_every = -1",
+            [],
+            r"log\.figure_every = -1 is out of range; allowed: an integer >= 0",
+        ),
+        (
+            "",
+            ["log.figure_evry=2"],
+            r'unknown key "log\.figure_evry" \(did you mean "log\.figure_every"\?\)',
+        ),
         (
             '[model]\nfriction = "polytopic"\nsize = 4',
             [],
@@ -370,7 +390,9 @@ def test_missing_files_are_errors(tmp_path: pathlib.Path, monkeypatch: pytest.Mo
 
 @pytest.mark.parametrize(
     "path",
-    sorted((pathlib.Path(__file__).resolve().parents[1] / "experiments" / "configs").glob("*.toml")),
+    sorted(
+        (pathlib.Path(__file__).resolve().parents[1] / "experiments" / "configs").glob("*.toml")
+    ),
     ids=lambda p: p.stem,
 )
 def test_every_shipped_config_loads(path: pathlib.Path) -> None:

@@ -295,7 +295,7 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     import shutil
     import textwrap
 
-    from torchfric.app.checkpoint import read_checkpoint
+    from torchfric.app.artifacts.checkpoint import read_checkpoint
     from torchfric.app.cli import main
 
     cfg = tmp_path / "ens.toml"
@@ -396,7 +396,9 @@ def test_the_default_config_runs_one_start_under_nine_tunings() -> None:
     ]
     assert Config.loads("[estimator]\nensemble = 0").estimator.ensemble == 0
     assert Config.loads('[estimator]\nmethod = "output_error"').estimator.method == "output_error"
-    with pytest.raises(TorchfricError, match="estimator.ensemble_r_scales .* needs estimator.method"):
+    with pytest.raises(
+        TorchfricError, match="estimator.ensemble_r_scales .* needs estimator.method"
+    ):
         Config.loads('[estimator]\nmethod = "output_error"\nensemble_r_scales = [1.0]')
 
 

@@ -18,8 +18,8 @@ from rig_configs import rig_config
 
 from torchfric.accel.native.lugre import lugre_integrator
 from torchfric.app.cli import build_parser, main
-from torchfric.app.schema import POSITION_UNITS
 from torchfric.data.rig import rig_experiment
+from torchfric.data.units import POSITION_UNITS
 
 STOP = 1500
 RENAMED = ["--column", "t=time_s", "--column", "u=cmd", "--column", "q=pos_deg"]

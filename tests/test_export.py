@@ -1,4 +1,4 @@
-"""TorchScript export (`torchfric.app.export`): every model option simulates as `torchfric.models.simulate`
+"""TorchScript export (`torchfric.models.torchscript`): every model option simulates as `torchfric.models.simulate`
 does, after a save + ``torch.jit.load`` round trip, at the training sample time and at others.
 
 The export shares the physics with `ArmModel` (`torchfric.models.arm.arm_field` / `arm_friction`, the
@@ -18,11 +18,11 @@ import warnings
 import pytest
 import torch
 
-from torchfric.app.export import export_model, save_exported
 from torchfric.errors import TorchfricError
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import FRICTIONS, make_friction
 from torchfric.models.simulate import SOLVERS, auto_substeps, simulate
+from torchfric.models.torchscript import export_model, save_exported
 
 RTOL = 1e-6
 

@@ -187,3 +187,115 @@ def test_importing_torchfric_does_not_import_the_app_layer():
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
     # every public name loads on first use: torch only with the first of them
     assert out.stdout.split("\n")[:2] == ["[] False", "True"]
+
+
+# ---------------------------------------------------------------------------- the app's rooms
+# The application layer's rooms, lowest first: a room imports only the rooms before it (and
+# itself); `cli` (the parser and its command table) sits on top. docs/architecture.md.
+APP_ROOMS = ("config", "artifacts", "run", "sweep", "commands", "cli")
+MAX_MODULES_PER_FOLDER = 12
+# Folders that held more modules than the cap when it was set; they may not grow (a new
+# module there goes into a subpackage of its own).
+MODULE_CEILINGS = {"torchfric/data": 13, "torchfric/estimators": 19}
+NEAR_CAP = int(0.9 * MAX_MODULE_LINES)
+SIZE_REASON = "Why this size:"
+
+
+def _room(module: str) -> str | None:
+    parts = module.split(".")
+    if len(parts) < 3 or parts[1] != "app":
+        return None
+    return parts[2]
+
+
+def test_app_rooms_import_only_the_rooms_below_them():
+    rooms = {p.name for p in (ROOT / "app").iterdir() if (p / "__init__.py").exists()}
+    assert rooms | {"cli"} == set(APP_ROOMS), "a new room needs its place in APP_ROOMS"
+    wrong = []
+    for module in MODULES:
+        room = _room(module)
+        if room is None:
+            continue
+        for target, _, line in _imports(module):
+            to = _room(target)
+            if to is None or to == room:
+                if target == "torchfric.app" and module != "torchfric.app":
+                    wrong.append(f"{module}:{line} imports the app package itself")
+                continue
+            if APP_ROOMS.index(to) >= APP_ROOMS.index(room):
+                wrong.append(f"{module}:{line} ({room}) imports {target} ({to}): rooms point down")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_a_room_is_entered_by_its_face():
+    """Another room imports a room's names from its package (its ``__init__``), never from
+    the modules inside: the face is the room's only public surface."""
+    wrong = []
+    for module in MODULES:
+        room = _room(module)
+        for target, _, line in _imports(module):
+            to = _room(target)
+            if to is None or to == room or to == "cli":
+                continue
+            if target != f"torchfric.app.{to}" and (ROOT / "app" / to).is_dir():
+                wrong.append(f"{module}:{line} imports {target}: import from torchfric.app.{to}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_every_face_name_resolves_and_loads_nothing_first():
+    import importlib
+    import subprocess
+    import sys
+
+    for room in APP_ROOMS[:-1]:
+        face = importlib.import_module(f"torchfric.app.{room}")
+        assert face.__all__ == sorted(face.__all__), room
+        for name in face.__all__:
+            assert getattr(face, name) is not None, f"torchfric.app.{room}.{name}"
+    # importing the faces (and the CLI's parser) imports none of their modules, nor torch
+    script = (
+        "import sys, torchfric.app.cli, "
+        + ", ".join(f"torchfric.app.{r}" for r in APP_ROOMS[:-1])
+        + "; print(sorted(m for m in sys.modules if m.count('.') >= 3 and m.startswith("
+        "'torchfric.app.')), 'torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[] False"
+
+
+def test_folders_hold_at_most_twelve_modules():
+    crowded = []
+    for folder in sorted({p.parent for p in ROOT.rglob("*.py")}):
+        name = folder.relative_to(ROOT.parent).as_posix()
+        count = len(list(folder.glob("*.py")))
+        if count > MODULE_CEILINGS.get(name, MAX_MODULES_PER_FOLDER):
+            crowded.append(f"{name}: {count} modules")
+    assert not crowded, "\n".join(crowded)
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_a_module_near_the_line_cap_says_why(module: str):
+    """A module within 10 % of the line cap states in its docstring why it is one module
+    ("Why this size: ..."): the concept, not the cap, decides where code goes."""
+    text = MODULES[module].read_text(encoding="utf-8")
+    if len(text.splitlines()) > NEAR_CAP:
+        doc = ast.get_docstring(ast.parse(text)) or ""
+        assert SIZE_REASON in doc, f"{MODULES[module]} has {len(text.splitlines())} lines"
+
+
+def test_the_architecture_page_names_every_module_and_no_missing_file():
+    page = (ROOT.parent / "docs" / "architecture.md").read_text(encoding="utf-8")
+    missing = []
+    for module, path in MODULES.items():
+        if path.name == "__init__.py" and module.count(".") < 2:
+            continue
+        if path.name not in page:
+            missing.append(path.relative_to(ROOT).as_posix())
+    assert not missing, "docs/architecture.md does not name: " + ", ".join(missing)
+    import re
+
+    # every path the page names exists (NAME.py-style placeholders aside)
+    refs = re.findall(r"`((?:torchfric|app|models|data|estimators|accel)/[a-z_/]+\.py)`", page)
+    for ref in set(refs):
+        path = ROOT.parent / ref if ref.startswith("torchfric/") else ROOT / ref
+        assert path.exists(), f"docs/architecture.md names {ref}, which does not exist"

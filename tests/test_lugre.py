@@ -13,12 +13,12 @@ import pytest
 import torch
 
 import torchfric.accel  # noqa: F401  (registers the "compiled" engine)
-from torchfric.app.export import export_model
 from torchfric.data.rig import RigParameters, excitation, simulate_rig
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import make_propagator
 from torchfric.models import ArmModel, make_friction, simulate
 from torchfric.models.lugre import bristle_solve, sliding_curve, sliding_level
+from torchfric.models.torchscript import export_model
 
 F64 = torch.float64
 

@@ -31,11 +31,11 @@ import pathlib
 import pytest
 import torch
 
-from torchfric.app.check import check_run
+from torchfric.app.commands.check import check_run
 from torchfric.app.config import Config
-from torchfric.app.outcome import summary_lines
-from torchfric.app.runner import train
-from torchfric.app.sizing import choose_size
+from torchfric.app.run import train
+from torchfric.app.run.autosize import choose_size
+from torchfric.app.run.outcome import summary_lines
 from torchfric.data.experiment import Experiment, make_experiment
 from torchfric.data.readers import save_csv
 from torchfric.data.rig import RigParameters, excitation

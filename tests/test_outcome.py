@@ -13,12 +13,12 @@ import torch
 from rig_configs import rig_config
 
 import torchfric
-from torchfric.app.api import fit, override_strings
-from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.artifacts.checkpoint import read_checkpoint
 from torchfric.app.cli import main
 from torchfric.app.config import Config
-from torchfric.app.loading import load_data
-from torchfric.app.outcome import keep_best, parameter_table, summary_lines
+from torchfric.app.run.inputs import load_data
+from torchfric.app.run.launch import fit, override_strings
+from torchfric.app.run.outcome import keep_best, parameter_table, summary_lines
 from torchfric.errors import TorchfricError
 from torchfric.estimators.metrics import score_simulation
 from torchfric.estimators.passes import EKFResult, PassRecord
@@ -228,7 +228,7 @@ def test_train_prints_a_summary_and_json_has_sigma_best_pass_and_files(
 
 def test_progress_bars_show_passes_with_rate(tmp_path: pathlib.Path) -> None:
     from torchfric.app.config import Config
-    from torchfric.app.runner import train
+    from torchfric.app.run import train
 
     cfg = Config.load(_config(tmp_path), [f"{k}={json.dumps(v)}" for k, v in SHORT.items()])
     stream, lines = io.StringIO(), []
@@ -267,7 +267,7 @@ def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(
     tmp_path: pathlib.Path,
 ) -> None:
     from torchfric.app.config import Config
-    from torchfric.app.evaluation import result_warnings
+    from torchfric.app.run.assessment import result_warnings
 
     cfg = Config.load(rig_config(tmp_path))
     model = _model()

@@ -18,7 +18,7 @@ import torch
 
 from torchfric import ArmModel, OddTanhFriction, load_experiment
 from torchfric.app.config import Config
-from torchfric.app.runner import load_data
+from torchfric.app.run import load_data
 from torchfric.data import Experiment
 from torchfric.errors import TorchfricError
 from torchfric.estimators.metrics import rms, score_benchmark, window_initial_state
@@ -257,7 +257,7 @@ def test_asymmetric_term_is_the_even_viscous_part_only() -> None:
 
 
 def test_asymmetric_config_and_prefit_skeleton() -> None:
-    from torchfric.app.runner import config_model
+    from torchfric.app.run import config_model
     from torchfric.estimators.prefit import _linear_skeleton
 
     cfg = Config.loads('[model]\nfriction = "tanh"\noffset = 0.0\nasymmetric = 0.0\nc_m = 1.0\n')

@@ -16,21 +16,20 @@ from typing import Any
 import pytest
 
 import torchfric
-from torchfric.app import reference
 from torchfric.app.config import (
-    COLUMN_NAMES,
     ENSEMBLE_KEYS,
     ESTIMATOR_KEYS,
     ESTIMATORS,
     INIT_KEYWORDS,
     MAX_EPOCHS,
     MAX_PASSES,
-    POSITION_UNITS,
     VELOCITY_SOURCES,
     Config,
+    reference,
 )
-from torchfric.app.toml_io import toml_value
+from torchfric.app.config.toml_io import toml_value
 from torchfric.data.rig import EXPERIMENTS
+from torchfric.data.units import COLUMN_NAMES, POSITION_UNITS
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import MEASUREMENTS
 from torchfric.estimators.settings import TUNING_UNITS
@@ -352,7 +351,7 @@ def test_attribute_docs_reads_entries_shared_names_and_continuations() -> None:
 
 
 def test_meanings_are_the_docstrings(entries: dict) -> None:
-    from torchfric.app.sections import DataConfig, ModelConfig
+    from torchfric.app.config.sections import DataConfig, ModelConfig
     from torchfric.estimators.settings import EKFTuning, EnsembleSpec
 
     docs = reference.attribute_docs
@@ -378,7 +377,7 @@ def test_committed_page_is_the_generated_one(text: str) -> None:
 
 
 def test_check_command_passes_on_the_page_and_fails_on_a_stale_one(tmp_path: pathlib.Path) -> None:
-    command = [sys.executable, "-m", "torchfric.app.reference"]
+    command = [sys.executable, "-m", "torchfric.app.config.reference"]
     ok = subprocess.run([*command, "--check", str(DOC)], capture_output=True, text=True, cwd=ROOT)
     assert (ok.returncode, ok.stdout, ok.stderr) == (0, "", "")
     stale = tmp_path / "config.md"
@@ -398,8 +397,8 @@ def test_check_command_passes_on_the_page_and_fails_on_a_stale_one(tmp_path: pat
 
 # -- messages name real keys -------------------------------------------------------------------
 
-_SECTIONS = ("data", "model", "estimator", "simulation", "log")
-_DOTTED = re.compile(r"(?<![\w./-])(" + "|".join(_SECTIONS) + r")\.([A-Za-z_]\w*)(?:\.(\w+))?")
+SECTIONS = ("data", "model", "estimator", "simulation", "log")
+_DOTTED = re.compile(r"(?<![\w./-])(" + "|".join(SECTIONS) + r")\.([A-Za-z_]\w*)(?:\.(\w+))?")
 _SET = re.compile(r"--set\s+([\w.]+)=")
 _FILE_SUFFIXES = {"csv", "npz", "mat", "json", "toml", "pt", "txt", "png", "html", "py", "md"}
 

@@ -17,8 +17,7 @@ import torch
 from rig_configs import rig_config
 
 from torchfric import ArmModel, OddTanhFriction
-from torchfric.app.cli import main
-from torchfric.app.figures import (
+from torchfric.app.artifacts.figures import (
     MAX_PANELS,
     autocorrelation,
     friction_figure,
@@ -26,7 +25,8 @@ from torchfric.app.figures import (
     trajectory_figure,
     whiteness_bound,
 )
-from torchfric.app.report import parameter_rows, report_html
+from torchfric.app.artifacts.report import parameter_rows, report_html
+from torchfric.app.cli import main
 from torchfric.estimators.uncertainty import friction_band
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -13,9 +13,9 @@ import re
 import numpy as np
 import pytest
 
+from torchfric.app.artifacts.rundir import next_run_dir
 from torchfric.app.cli import main
 from torchfric.app.config import Config
-from torchfric.app.rundir import next_run_dir
 
 M, B, FC, C_M = 0.03, 0.02, 0.3, 16.0
 
@@ -320,7 +320,7 @@ def test_check_refuses_a_wrong_key_and_writes_nothing(user, record, capsys) -> N
 
 
 def test_next_run_dir_is_the_one_claim_would_take_and_creates_nothing(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from torchfric.app.rundir import claim_run_dir
+    from torchfric.app.artifacts.rundir import claim_run_dir
 
     default = tmp_path / "runs" / "x"
     assert next_run_dir(default) == default and not (tmp_path / "runs").exists()

@@ -11,15 +11,15 @@ import pathlib
 import pytest
 from rig_configs import rig_config
 
-from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.artifacts.checkpoint import read_checkpoint
 from torchfric.app.cli import main
 from torchfric.app.config import Config
 from torchfric.errors import TorchfricError
 
 optuna = pytest.importorskip("optuna", reason='Optuna is not installed: pip install -e ".[sweep]"')
 
-from torchfric.app.sweep import run_sweep, shares  # noqa: E402
-from torchfric.app.sweep_space import read_space  # noqa: E402
+from torchfric.app.sweep.driver import run_sweep, shares  # noqa: E402
+from torchfric.app.sweep.space import read_space  # noqa: E402
 
 # Short trials: 2 passes of one filter over the first 2000 samples.
 FAST = ["estimator.passes=2", "estimator.ensemble=0", "data.stop=2000"]

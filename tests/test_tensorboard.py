@@ -11,11 +11,11 @@ import pathlib
 import pytest
 from rig_configs import rig_config
 
-from torchfric.app.checkpoint import read_checkpoint
+from torchfric.app.artifacts.checkpoint import read_checkpoint
 from torchfric.app.cli import main
 from torchfric.app.config import Config
-from torchfric.app.hparams import final_metrics, hparam_values
-from torchfric.app.observers import ekf_scalars
+from torchfric.app.run.monitors import ekf_scalars
+from torchfric.app.run.tensorboard_log import final_metrics, hparam_values
 from torchfric.estimators.passes import PassRecord
 
 PNG = b"\x89PNG\r\n\x1a\n"

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import torchfric.accel  # noqa: F401  (the compiled step)
-from torchfric.app.checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
+from torchfric.app.artifacts.checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
 from torchfric.app.cli import main
 from torchfric.data.rig import RigParameters, changing_record, excitation, simulate_rig
 from torchfric.estimators.ekf import EKFState, make_propagator, make_step, run_pass

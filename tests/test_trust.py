@@ -16,9 +16,9 @@ import textwrap
 import numpy as np
 import pytest
 
+from torchfric.app.artifacts.rundir import LOCK, MARKER
 from torchfric.app.cli import main
 from torchfric.app.config import Config
-from torchfric.app.rundir import LOCK, MARKER
 from torchfric.errors import TorchfricError
 from torchfric.files import json_safe, write_json
 
@@ -148,7 +148,7 @@ def test_saturated_input_and_millisecond_time_are_warned(
 
 
 def test_result_warnings_name_what_is_almost_certainly_wrong() -> None:
-    from torchfric.app.runner import result_warnings
+    from torchfric.app.run import result_warnings
     from torchfric.models.arm import ArmModel
     from torchfric.models.friction import OddTanhFriction
 
@@ -199,7 +199,7 @@ def test_out_with_an_earlier_run_needs_overwrite_and_replaces_it_only_at_the_end
     assert "--overwrite" in _one_line_error(capsys)
 
     # A re-run that fails half-way leaves the earlier run exactly as it was.
-    import torchfric.app.runner as runner
+    import torchfric.app.run.runner as runner
     from torchfric.errors import DivergenceError
 
     def diverge(*args, **kwargs):  # type: ignore[no-untyped-def]
@@ -227,7 +227,7 @@ def test_checkpoints_are_copied_only_by_the_explicit_step(
     assert (tmp_path / "runs" / "short" / "short.pt").is_file()
     target = tmp_path / "checkpoints" / "short.pt"
     assert main(["train", str(cfg), "--quiet", *SHORT, "--checkpoint", str(target)]) == 0
-    from torchfric.app.checkpoint import read_checkpoint
+    from torchfric.app.artifacts.checkpoint import read_checkpoint
 
     assert read_checkpoint(target)["complete"]
     notes = tmp_path / "notes.pt"
@@ -262,7 +262,7 @@ def test_a_second_run_into_a_locked_directory_stops_naming_the_owner(
 def test_ctrl_c_names_the_last_pass_and_the_resume_command(
     tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import torchfric.app.snapshots as snapshots
+    import torchfric.app.run.snapshots as snapshots
 
     original = snapshots.Snapshots.on_pass_end
 

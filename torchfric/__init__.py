@@ -11,6 +11,7 @@ Public API (the CLI is a thin layer over it)::
 
 from typing import TYPE_CHECKING
 
+from .lazy import lazy_names
 from .version import __version__
 
 # Every name loads on first use (PEP 562), so that `import torchfric` costs nothing until a name
@@ -57,20 +58,20 @@ _LAZY: dict[str, str] = {
             "OddTanhFriction",
             "PolytopicFriction",
             "StribeckFriction",
+            "export_model",
             "make_friction",
             "simulate",
         ],
         "models",
     ),  # fmt: skip
-    # The app layer (config files, checkpoints, the export) sits above everything else; the
-    # public face reaches these few names of it.
+    # The app layer (config files, checkpoints, runs) sits above everything else; the public
+    # face reaches these few names of it.
     "Config": "app.config",
-    "load_checkpoint": "app.checkpoint",
-    "read_checkpoint": "app.checkpoint",
-    "save_checkpoint": "app.checkpoint",
-    "export_model": "app.export",
-    "fit": "app.api",
-    "TrainResult": "app.runner",
+    "load_checkpoint": "app.artifacts",
+    "read_checkpoint": "app.artifacts",
+    "save_checkpoint": "app.artifacts",
+    "fit": "app.run",
+    "TrainResult": "app.run",
 }
 
 if TYPE_CHECKING:  # what the names are, for type checkers and editors
@@ -108,24 +109,13 @@ if TYPE_CHECKING:  # what the names are, for type checkers and editors
         OddTanhFriction,
         PolytopicFriction,
         StribeckFriction,
+        export_model,
         make_friction,
         simulate,
     )
 
 
-def __getattr__(name: str):  # type: ignore[no-untyped-def]
-    if name in _LAZY:
-        import importlib
-
-        value = getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'torchfric' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+__getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)
 
 __all__ = [
     "ArmModel",

@@ -7,119 +7,17 @@ User errors (bad config, data, checkpoints, a diverging filter) print one line
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import pathlib
-import shlex
 import sys
 import warnings
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
 
 # Nothing here imports torch at module level: `--help`, `--version` and argument errors answer
 # without it (a third of a second instead of two); each command imports what it needs.
 from ..errors import RunInterrupted, TorchfricError
-from ..files import json_safe
 from ..version import __version__
-from .api import torch_settings, train_on_stderr
-from .track import add_track_parser
-from .use import cmd_evaluate, cmd_export, cmd_simulate
 
-__all__ = ["main"]
-
-
-def _cmd_train(args: argparse.Namespace) -> int:
-    from .config import Config
-
-    cfg = Config.load(args.config, list(args.set or []))
-    try:
-        result = train_on_stderr(
-            cfg, out=args.out, resume=args.resume, overwrite=args.overwrite,
-            checkpoint=args.checkpoint, quiet=args.quiet,
-        )  # fmt: skip
-    except RunInterrupted as stop:
-        if stop.run_dir is not None:
-            sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
-            stop.args = (
-                f"{stop}; continue with: torchfric train {shlex.quote(args.config)}{sets} "
-                f"--resume {shlex.quote(str(stop.run_dir))}",
-            )
-        raise
-    print_result(result, as_json=args.json, copied=args.checkpoint)
-    return 0
-
-
-def run_files(result: Any, copied: str | None = None) -> dict[str, str]:
-    """The files a finished run wrote, by label (the summary's last lines, ``files`` in JSON)."""
-    run = pathlib.Path(result.run_dir)
-    files = {"checkpoint": str(result.checkpoint)}
-    if copied:
-        files["copied to"] = str(copied)
-    for label, name in (("metrics", "metrics.json"), ("report", "report.html")):
-        if (run / name).exists():
-            files[label] = str(run / name)
-    files["tensorboard"] = f"tensorboard --logdir {shlex.quote(str(run))}"
-    files["run"] = str(run)
-    return files
-
-
-def print_result(result: Any, *, as_json: bool = False, copied: str | None = None) -> None:
-    """A finished run on stdout: the human summary (`torchfric.app.outcome.summary_lines`), or
-    with `as_json` its machine form (the metrics' headline keys and the files)."""
-    from .outcome import summary_lines
-
-    m = result.metrics
-    files = run_files(result, copied)
-    if as_json:
-        keys = ("name", "estimator", "inertia", "parameters", "best_pass", "converged",
-                "stopped", "validation", "test", "identification", "warnings", "seconds")  # fmt: skip
-        out = {
-            "checkpoint": str(result.checkpoint),
-            "run_dir": str(result.run_dir),
-            **{k: m[k] for k in keys if k in m},
-            "files": files,
-        }
-        print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
-        return
-    print("\n".join(summary_lines(m, files)))
-
-
-def _cmd_generate(args: argparse.Namespace) -> int:
-    from ..accel.native.lugre import lugre_integrator
-    from ..data.rig import generate
-
-    paths = generate(args.outdir, seed=args.seed, force=args.force, integrate=lugre_integrator())
-    for name, path in paths.items():
-        print(f"{name}: {path}")
-    return 0
-
-
-def _cmd_init(args: argparse.Namespace) -> int:
-    from .starter import write_starter
-
-    lines = write_starter(
-        args.data,
-        c_m=args.c_m,
-        out=args.out,
-        force=args.force,
-        split=args.split,
-        columns=args.column or (),
-        time_step=args.time_step,
-    )
-    print("\n".join(lines))
-    return 0
-
-
-def _cmd_check(args: argparse.Namespace) -> int:
-    from .check import check_run
-    from .config import Config
-
-    cfg = Config.load(args.config, list(args.set or []))
-    print(check_run(cfg))
-    sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
-    train = f"torchfric train {shlex.quote(args.config)}{sets}"
-    print(f"ok          nothing written; train with: {train}")
-    return 0
+__all__ = ["COMMANDS", "build_parser", "main"]
 
 
 def _add_train(sub: argparse._SubParsersAction) -> None:
@@ -165,7 +63,6 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quiet", action="store_true", help="no progress on stderr (the result still prints)"
     )
-    p.set_defaults(func=_cmd_train)
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:
@@ -183,7 +80,6 @@ def _add_evaluate(sub: argparse._SubParsersAction) -> None:
     )
     _add_record_options(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.set_defaults(func=cmd_evaluate)
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
@@ -204,7 +100,6 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
         "--out", required=True, help="output CSV (columns t,u,q,qdot; q in rad or m, SI)"
     )
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.set_defaults(func=cmd_simulate)
 
 
 def _add_record_options(p: argparse.ArgumentParser) -> None:
@@ -218,7 +113,7 @@ def _add_record_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--position-unit",
-        # torchfric.app.schema.POSITION_UNITS (a test keeps them equal): importing it here would
+        # torchfric.data.units.POSITION_UNITS (a test keeps them equal): importing it here would
         # import torch for every --help
         choices=("rad", "deg", "m", "mm"),
         default=None,
@@ -242,7 +137,6 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
         help="nominal sample time stored with the module (metadata: it simulates at the sample time of the t it is given; default: the training data's)",
     )
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
-    p.set_defaults(func=cmd_export)
 
 
 def _add_generate(sub: argparse._SubParsersAction) -> None:
@@ -255,7 +149,6 @@ def _add_generate(sub: argparse._SubParsersAction) -> None:
     p.add_argument("outdir")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--force", action="store_true", help="replace the rig's files in OUTDIR")
-    p.set_defaults(func=_cmd_generate)
 
 
 def _add_init(sub: argparse._SubParsersAction) -> None:
@@ -297,7 +190,6 @@ def _add_init(sub: argparse._SubParsersAction) -> None:
         help="write the first FRACTION of the file and the rest as two new CSV files beside "
         "the config, for identification and validation (e.g. 0.7)",
     )
-    p.set_defaults(func=_cmd_init)
 
 
 def _add_check(sub: argparse._SubParsersAction) -> None:
@@ -309,19 +201,24 @@ def _add_check(sub: argparse._SubParsersAction) -> None:
         "memory, the pre-fit) and show what would run. Writes nothing.",
     )
     _add_config_and_sets(p)
-    p.set_defaults(func=_cmd_check)
 
 
-def _cmd_sweep(args: argparse.Namespace) -> int:
-    from .sweep import run_sweep
-    from .sweep_out import summary_lines
-
-    result = run_sweep(
-        args.config, args.space, args.trials, out=args.out, jobs=args.jobs,
-        storage=args.storage, backend=args.backend, sets=list(args.set or []),
-    )  # fmt: skip
-    print("\n".join(summary_lines(result)))
-    return 0
+def _add_track(sub: argparse._SubParsersAction) -> None:
+    """``torchfric track CHECKPOINT DATA --out DIR``: the recursive EKF over a record."""
+    p = sub.add_parser("track", help="follow a machine on-line from a checkpoint (recursive EKF)")
+    p.add_argument("checkpoint", help="a checkpoint (torchfric train's NAME.pt)")
+    p.add_argument("data", help="a record (file, or rig:NAME), read as the run read its records")
+    p.add_argument("--out", required=True, help="a new (or empty) directory for the outputs")
+    p.add_argument("--every", type=int, default=100, help="samples per row of track.csv (100)")
+    p.add_argument("--follow", action="store_true", help="keep reading a file that grows")
+    p.add_argument("--idle", type=float, default=30.0,
+                   help="with --follow: stop after this many seconds without new rows (30)")  # fmt: skip
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a config key of the checkpoint's run, e.g. track.q_theta=1e-5")  # fmt: skip
+    p.add_argument("--column", action="append", metavar="ROLE=NAME",
+                   help="the file's column for t, u, q or qdot (as evaluate's --column)")  # fmt: skip
+    p.add_argument("--position-unit", help="the file's unit of q (as evaluate's)")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def _add_sweep(sub: argparse._SubParsersAction) -> None:
@@ -359,7 +256,6 @@ def _add_sweep(sub: argparse._SubParsersAction) -> None:
         help="optuna: trials in local processes (default); ray: through Ray Tune, on a local "
         "Ray or the cluster of RAY_ADDRESS",
     )  # fmt: skip
-    p.set_defaults(func=_cmd_sweep)
 
 
 def _add_config_and_sets(p: argparse.ArgumentParser) -> None:
@@ -382,31 +278,41 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"torchfric {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (
-        _add_init,
-        _add_check,
-        _add_train,
-        _add_evaluate,
-        _add_simulate,
-        _add_export,
-        add_track_parser,
-        _add_sweep,
-        _add_generate,
-    ):
+    for add, _ in COMMANDS.values():
         add(sub)
     return parser
+
+
+COMMANDS: dict[str, tuple[Callable[[argparse._SubParsersAction], None], str]] = {
+    "init": (_add_init, "cmd_init"),
+    "check": (_add_check, "cmd_check"),
+    "train": (_add_train, "cmd_train"),
+    "evaluate": (_add_evaluate, "cmd_evaluate"),
+    "simulate": (_add_simulate, "cmd_simulate"),
+    "export": (_add_export, "cmd_export"),
+    "track": (_add_track, "cmd_track"),
+    "sweep": (_add_sweep, "cmd_sweep"),
+    "generate": (_add_generate, "cmd_generate"),
+}
+"""Each command (in ``--help``'s order) → the function that adds its arguments to the parser
+and the name of its handler in `torchfric.app.commands` (the parsed arguments → the exit
+status), imported only when that command runs."""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        from . import commands
+        from .run import torch_settings
+
+        handler = getattr(commands, COMMANDS[args.command][1])
         # float64, and one thread by default: the filter's tensors are tiny, a thread pool only
         # adds overhead, and with a busy second core it made small operations several times
         # slower here. TORCHFRIC_THREADS overrides.
         with torch_settings(), warnings.catch_warnings():
             warnings.simplefilter("default")
             warnings.showwarning = _show_warning
-            return int(args.func(args) or 0)
+            return int(handler(args) or 0)
     except RunInterrupted as stop:
         sys.stderr.write(f"\n{stop}\n")
         return 130

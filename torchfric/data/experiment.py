@@ -18,6 +18,7 @@ from torch import Tensor
 
 from ..errors import TorchfricError
 from .convert import ArrayLike, _as_numpy, _as_tensor
+from .units import COLUMN_NAMES
 from .velocity import reconstruct_velocity
 
 __all__ = [
@@ -25,8 +26,6 @@ __all__ = [
     "validate_experiment",
     "make_experiment",
 ]
-
-_COLUMNS = ("t", "u", "q", "qdot")
 
 
 # --------------------------------------------------------------------------- validation
@@ -143,7 +142,7 @@ class Experiment:
     name: str = "experiment"
 
     def __post_init__(self) -> None:
-        cols = {key: getattr(self, key) for key in _COLUMNS if getattr(self, key) is not None}
+        cols = {key: getattr(self, key) for key in COLUMN_NAMES if getattr(self, key) is not None}
         arrays = {key: _as_numpy(val, f"{self.name}: column {key}") for key, val in cols.items()}
         n = _check_shapes(arrays, {key: f"column {key}" for key in arrays}, self.name)
         if n < 2:
@@ -218,7 +217,7 @@ class Experiment:
         """``{"t", "u", "q"[, "qdot"]}`` as float64 `(N,)` arrays (copies)."""
         return {
             key: getattr(self, key).numpy().copy()
-            for key in _COLUMNS
+            for key in COLUMN_NAMES
             if getattr(self, key) is not None
         }
 

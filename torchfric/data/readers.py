@@ -17,8 +17,9 @@ import numpy as np
 
 from ..errors import MissingColumn, TorchfricError, shorten
 from .convert import _check_step, _one_line
-from .experiment import _COLUMNS, Experiment, _check_shapes, _validate
+from .experiment import Experiment, _check_shapes, _validate
 from .guards import _MEMORY_FIX, _check_memory, _check_regular_file
+from .units import COLUMN_NAMES
 
 __all__ = ["FILE_TYPES", "load_experiment", "read_columns", "save_csv"]
 
@@ -235,11 +236,11 @@ def _select(
 # --------------------------------------------------------------------------- loading
 def _column_mapping(columns: Mapping[str, str] | None) -> dict[str, str]:
     """Our names (t, u, q, qdot) → names in the file: themselves, updated by `columns`."""
-    mapping = dict(zip(_COLUMNS, _COLUMNS, strict=True))
+    mapping = dict(zip(COLUMN_NAMES, COLUMN_NAMES, strict=True))
     if columns is not None:
         if not isinstance(columns, Mapping):
             raise TorchfricError(f"columns = {columns!r}; expected a mapping such as {{'q': 'qm'}}")
-        unknown = sorted(str(k) for k in columns if k not in _COLUMNS)
+        unknown = sorted(str(k) for k in columns if k not in COLUMN_NAMES)
         if unknown:
             raise TorchfricError(
                 f"unknown key(s) {unknown} in columns; allowed keys are t, u, q, qdot (our names), "
@@ -280,7 +281,7 @@ def _select_columns(
     """(columns, their labels in messages): u and q always, t and qdot when present or asked."""
     cols: dict[str, np.ndarray] = {}
     labels: dict[str, str] = {}
-    for key in _COLUMNS:
+    for key in COLUMN_NAMES:
         if key in ("u", "q") or key in explicit or _has(table, mapping[key]):
             cols[key] = _select(table, mapping[key], key, p)
             labels[key] = f"column {key} ({mapping[key]!r})"

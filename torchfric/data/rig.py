@@ -1,4 +1,5 @@
-"""The synthetic rig: torchfric's own "true system" (Hensen et al. §2, §5; DESIGN.md "Data").
+"""The synthetic rig: torchfric's own "true system" (Hensen et al. §2, §5; docs/results.md,
+"Results on the synthetic rig").
 
 A rotating arm without gravity, driven by a motor current ``u`` [A]::
 

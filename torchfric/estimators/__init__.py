@@ -20,7 +20,15 @@ from .ekf import EKFState, Innovation, predict, update
 from .ensemble import EnsembleResult, MemberSummary, identify_ekf_ensemble
 from .identify import identify_ekf
 from .metrics import fit_percent, score_simulation
-from .observers import Callback, CallbackList, EKFCallback, EnsembleCallback, OECallback
+from .observers import (
+    Callback,
+    CallbackList,
+    EKFCallback,
+    EnsembleCallback,
+    OECallback,
+    RunEnd,
+    RunStart,
+)
 from .output_error import EpochRecord, OEResult, identify_output_error
 from .passes import EKFResult, PassRecord
 from .prefit import PrefitResult, prefit
@@ -43,6 +51,8 @@ __all__ = [
     "EKFCallback",
     "EnsembleCallback",
     "OECallback",
+    "RunEnd",
+    "RunStart",
     "EpochRecord",
     "OEResult",
     "identify_output_error",

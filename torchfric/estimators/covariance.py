@@ -3,7 +3,7 @@
 The augmented EKF ends every pass with a ``P_θθ``, but that is the filter's belief after it has
 absorbed the same data once per pass under an assumed noise model (Q, R); on an independent
 axis its σ were 10–1000× narrower than the real error. What a run reports instead
-(`torchfric.app.confidence`) is built here, with θ held fixed (``P_θθ = 0``) and q as the one
+(`torchfric.app.run.confidence`) is built here, with θ held fixed (``P_θθ = 0``) and q as the one
 measured channel:
 
 1. `noise_model`: the Q and R factors under which the fixed-θ filter's innovations are most

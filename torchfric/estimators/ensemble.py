@@ -2,25 +2,26 @@
 
 The paper warns that "the filter tuning is mainly based on experience and trial and error" and
 that "parameter divergence can occur". An ensemble answers both at the cost of roughly one filter:
-K members, differing in their initial θ (random, physically plausible: every entry scaled by a
-log-uniform factor in ``[1/spread, spread]`` around the start, member 0 being the start itself)
-and in the scaling of the tuning (Q and R multiplied by factors from a grid), run through the
-same per-sample step, run as one batch: generated C by default (`torchfric.native`, four members
-per SIMD vector), else `torch.func.vmap` of the step compiled once for the whole batch.
+K members, differing in their initial θ (every entry scaled by a log-uniform factor in
+``[1/spread, spread]``, member 0 the start itself) and in the tuning's scale (Q and R times
+factors from a grid), run through the same per-sample step as one batch: generated C by default
+(four members per SIMD vector), else `torch.func.vmap` of the step compiled once.
 
 Each member is an independent iterative off-line EKF exactly as in `identify_ekf`: the same
 passes, per-experiment state reset, per-member early stop on the θ tolerance and per-member
 rollback of a pass that lowers its innovation log-likelihood. A member whose belief becomes
 unhealthy (NaN, negative variance, θ out of the box) is frozen at its last good pass and marked
 diverged; the others carry on. No per-sample host synchronisation: health flags are folded into
-masks on the device and read once per stretch. (The pass loop is `torchfric.estimators.passes`.)
+masks on the device and read once per stretch.
 
 After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇
 FIT of an open-loop simulation (all members simulated as one batch), averaged over the
 validation experiments and, with equal weight, over the training experiments (the training
 experiments alone when no validation data are given) — and the spread of all members' results
-is reported: a cheap measure of how trustworthy the identification is
-(`torchfric.estimators.selection`).
+is reported: a cheap measure of how trustworthy the identification is (`selection`).
+
+Why this size: the batch's one pass loop, its stretch masks and its selection call must change
+together; the pass ledger and the selection are already apart (`passes`, `selection`).
 """
 
 from __future__ import annotations
@@ -321,12 +322,10 @@ def identify_ekf_ensemble(
         members: explicit ``(θ (K,k), q_scale (K,), r_scale (K,))``.
         validation: experiments for the selection by open-loop FIT, weighted equally with
             the training experiments' FIT (without validation: the training FIT alone).
-        max_substeps: members too stiff to simulate with this many RK4 sub-steps per sample
-            are scored as failed runs in the selection.
+        max_substeps: a member too stiff for this many RK4 sub-steps a sample scores as failed.
         callback: a `Callback` (`EnsembleCallback`) for progress and per-pass snapshots.
-        start: a state passed to `Callback.on_ensemble_pass_end`: continue after that
-            pass (members, tuning scales and histories come from it; the result equals an
-            uninterrupted run's).
+        start: a state passed to `Callback.on_ensemble_pass_end`: continue after that pass
+            (the result equals an uninterrupted run's).
 
     Returns:
         `EnsembleResult`; `.result` is the kept member as an `EKFResult` with its pass history.

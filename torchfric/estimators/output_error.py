@@ -1,5 +1,5 @@
 """Gradient output-error identification: minimise the open-loop simulation error by Adam (and an
-optional L-BFGS polish) through the solver (DESIGN.md, "Estimators" 2.).
+optional L-BFGS polish) through the solver (docs/estimators.md, "Output-error training").
 
 The same `ArmModel` and the same θ (estimation coordinates: log for positive parameters, so they
 stay positive) as the EKF. θ is trained as one leaf tensor passed to `simulate(..., theta=θ)`;
@@ -37,6 +37,9 @@ Layout: `identify_output_error` checks the data (`shooting.training_data`), then
 θ (and the window states δ), the optimiser, the history and the best epoch, and steps through the
 Adam epochs (`_Training.epoch`), the early stop (`_BestEpoch`) and the optional L-BFGS polish
 (`_Training.polish`). The data tensors, windows, rollouts and losses are in `shooting`.
+
+Why this size: `_Training` is one optimisation with its resumable state; the shooting windows
+and the loss are already apart (`shooting`), and its covariance (`oe_covariance`).
 """
 
 from __future__ import annotations

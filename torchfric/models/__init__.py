@@ -6,7 +6,9 @@
 - `arm`: `ArmModel`, whose right-hand side `arm_field` (with `arm_friction`) is the one vector
   field that simulation, the EKF, output error, the pre-fit and the TorchScript export all use;
 - `simulate`: open-loop simulation on the sample grid with a zero-order hold, by torchdiffeq
-  or by any engine registered in its `ENGINES` table (`torchfric.accel` registers "compiled").
+  or by any engine registered in its `ENGINES` table (`torchfric.accel` registers "compiled");
+- `torchscript`: the identified model as a TorchScript module that runs without torchfric
+  (`export_model`), built from the same vector field.
 
 Nothing here imports the data, estimators, accel or app layers.
 """
@@ -22,6 +24,7 @@ from .friction import (
     make_friction,
 )
 from .simulate import ENGINES, SOLVERS, auto_substeps, register_engine, rk4_step, simulate
+from .torchscript import ExportedArm, export_model, save_exported
 
 __all__ = [
     "ArmModel",
@@ -40,4 +43,7 @@ __all__ = [
     "register_engine",
     "rk4_step",
     "simulate",
+    "ExportedArm",
+    "export_model",
+    "save_exported",
 ]

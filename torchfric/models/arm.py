@@ -11,6 +11,9 @@ flat vector θ in *estimation coordinates* (log for positive parameters when `lo
 `vector_field(x, u, theta)` is a pure function of that vector, which is what the EKF augments
 and what `torch.func` differentiates. The same field serves simulation and output-error training
 (with `theta=None` it uses the module's own, differentiable parameters).
+
+Why this size: the one vector field and the θ layout it reads (split, physical values, specs)
+must change together; LuGre's state and the stored friction are apart (`lugre`, `stored`).
 """
 
 from __future__ import annotations

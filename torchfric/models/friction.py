@@ -14,6 +14,9 @@ Models (registry name in brackets, as used by `model.friction` in a config):
 - `CoulombFriction` ("coulomb"): ``C(v) = Fc tanh(v/ε)``; with the arm's viscous ``b`` this is
   the Coulomb+viscous white-box baseline.
 - `StribeckFriction` ("stribeck"): ``C(v) = (Fc + (Fs − Fc) exp(−(v/vs)²)) tanh(v/ε)``.
+
+Why this size: one registry of curves that share the odd-by-construction contract and the
+physical ↔ estimation coordinates; each class is short, and a reader compares them side by side.
 """
 
 from __future__ import annotations

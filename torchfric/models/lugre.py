@@ -79,7 +79,7 @@ def sliding_curve(
 
 
 # The functions below are TorchScript-compatible (tensors and optional tensors only): the
-# exported module (`torchfric.app.export`) compiles them, so its steps are these very ones.
+# exported module (`torchfric.models.torchscript`) compiles them, so its steps are these very ones.
 
 
 def bristle_field(

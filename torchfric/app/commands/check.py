@@ -1,0 +1,231 @@
+"""``torchfric check CONFIG``: everything `train` checks before it starts, and what would run.
+
+`check_run` does what a run does before it claims its directory (`torchfric.app.run.runner.train`,
+``_Run.prepare``): it loads and checks every data file, builds the configured model, checks
+the machine's memory for it and computes the starting point (the pre-fit, about a second). Then
+it describes the run: its name and the run directory it would claim (`next_run_dir`), the data,
+the model and the estimator. It writes nothing: no run directory, no file. (As in a run, the
+pre-fit's compiled code may be added to the compiled-code cache, ``TORCHFRIC_CACHE``.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import shlex
+
+import torch
+
+from ...data import DEFAULT_CUTOFF_HZ, Experiment
+from ...data.units import si_unit
+from ...errors import TorchfricError
+from ...models.arm import ArmModel
+from ..artifacts import next_run_dir
+from ..config import Config
+from ..run import candidate_sizes, check_resources, config_model, initial_model, load_data
+from ..run import sized as with_size
+from .columns import rpm
+
+__all__ = ["check_run", "cmd_check"]
+
+_W = 12  # width of the label column, as in the train summary
+
+
+def _line(label: str, text: str) -> str:
+    return f"{label:<{_W}}{text}"
+
+
+def _run_dir(cfg: Config) -> pathlib.Path:
+    """The run directory a plain ``torchfric train`` would claim; refuses an ``out_dir`` that
+    cannot hold one (a file on the way), as the claim itself would."""
+    default = pathlib.Path(cfg.out_dir) / cfg.name
+    for folder in (default.parent, *default.parent.parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise TorchfricError(
+                    f"out_dir = {cfg.out_dir!r}: {folder} is a file, not a folder, so no run "
+                    "directory can be made there; set out_dir to a folder (or pass --out DIR "
+                    "to train)"
+                )
+            break
+    return next_run_dir(default)
+
+
+def _velocity(cfg: Config) -> str:
+    d = cfg.data
+    if d.velocity == "measured":
+        return "measured (the files' qdot column)"
+    cutoff = DEFAULT_CUTOFF_HZ[d.velocity] if d.velocity_cutoff_hz is None else d.velocity_cutoff_hz
+    kind = "causal high-pass differentiator" if d.velocity == "highpass" else "off-line, zero-phase"
+    return f"{d.velocity} ({kind}, cut-off {cutoff:g} Hz)"
+
+
+def _shown(path: str) -> str:
+    """`path` relative to the working directory when it lies below it (paths are absolute)."""
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:  # another drive
+        return path
+    return path if rel.startswith("..") else rel
+
+
+def _records(label: str, exps: list[Experiment], paths: tuple[str, ...]) -> list[str]:
+    """One line per record: file, samples, sample time and rate, duration."""
+    if not exps:
+        return [_line(label, "none")]
+    lines = []
+    for i, (exp, path) in enumerate(zip(exps, paths, strict=True)):
+        lines.append(
+            _line(
+                label if i == 0 else "",
+                f"{_shown(path)}: {exp.n} samples, dt {exp.dt:.6g} s ({1.0 / exp.dt:.6g} Hz), "
+                f"{exp.duration:.6g} s",
+            )
+        )
+    return lines
+
+
+def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -> list[str]:
+    m = cfg.model
+    terms = [
+        name
+        for name, on in (
+            ("offset", m.offset is not None),
+            ("gravity", m.gravity is not None),
+            ("asymmetric viscous", m.asymmetric is not None),
+        )
+        if on
+    ]
+    c_m = f"c_m {m.c_m:g}" + (" (estimated)" if m.estimate_c_m else " (known, fixed)")
+    sized = m.friction in ("tanh", "polytopic")
+    tries = ", ".join(map(str, candidate_sizes(cfg))) if m.size == "auto" else ""
+    size = f"auto (tries {tries}; the largest is started here)" if tries else m.size
+    what = f"{m.friction} friction" + (f", size {size}" if sized else "")
+    if base.state_size != 2:
+        bristles = {k: v for k, v in base.physical_parameters().items() if k.startswith("lugre")}
+        what += (
+            " with LuGre bristles ("
+            + ", ".join(f"{k.removeprefix('lugre_')} {v:.4g}" for k, v in bristles.items())
+            + " to start)"
+        )
+    lines = [
+        _line(
+            "model",
+            f"{what}, {base.num_parameters} parameters, {c_m}"
+            + (f"; terms: {', '.join(terms)}" if terms else ""),
+        )
+    ]
+    source = {"prefit": "pre-fit on the identification data", "config": "the config's values"}
+    where = source.get(init_kind, init_kind.replace("checkpoint:", "checkpoint "))
+    values = f"inertia {float(start.inertia.detach()):.6g}"
+    if m.friction != "polytopic":
+        values += f", viscous {float(start.viscous.detach()):.6g}"
+    lines.append(_line("start", f"{where}: {values}"))
+    return lines
+
+
+def _estimator_lines(cfg: Config, samples: int) -> list[str]:
+    est = cfg.estimator
+    if est.method == "output_error":
+        window = "full length" if est.window == 0 else f"windows of {est.window} samples"
+        return [
+            _line(
+                "estimator",
+                f"output_error: up to {est.epochs} epochs, lr {est.lr:g} → {est.lr_final:g}, "
+                f"{window}, batch {est.batch}, early stop after {est.patience} evaluations "
+                "without improvement",
+            ),
+            _line("work", f"{samples} samples × up to {est.epochs} epochs"),
+        ]
+    stop = f"tolerance {est.tolerance:g}" if est.tolerance > 0 else "no early stop"
+    if est.ensemble > 0:
+        spec = est.ensemble_spec(cfg.seed)
+        filters = spec.size
+        how = (
+            f"ensemble of {filters} filters ({spec.members} start(s) × {len(spec.q_scales)} Q × "
+            f"{len(spec.r_scales)} R scales; the best by open-loop FIT is kept)"
+        )
+    else:
+        filters, how = 1, "one filter"
+    steps = samples * est.passes * filters
+    return [
+        _line("estimator", f"ekf: up to {est.passes} passes ({stop}), {how}"),
+        _line(
+            "work",
+            f"{samples} samples × {est.passes} passes × {filters} filter(s) = "
+            f"{steps:,} filter steps at most",
+        ),
+    ]
+
+
+def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
+    """Check `cfg` as `train` does before it starts, writing nothing; what would run, as text.
+
+    Raises `TorchfricError` (one line naming the problem and its fix) for bad data, a model too
+    large for this machine, a failing pre-fit or an ``out_dir`` that cannot hold a run. The
+    data's warnings (`torchfric.data.data_warnings`) are in the text and appended to `warnings`.
+    """
+    torch.manual_seed(cfg.seed)  # as train does: the same starting point
+    found: list[str] = []
+    train, val, test, _ = load_data(cfg, warnings=found)
+    # model.size = "auto": the largest size tried is the one checked and started here
+    one = with_size(cfg, max(candidate_sizes(cfg))) if cfg.model.size == "auto" else cfg
+    base = config_model(one, train)
+    check_resources(one, train, base)
+    start, init_kind = initial_model(one, train, base)
+    run = _run_dir(cfg)
+    d = cfg.data
+    lines = [
+        _line("run", f"{cfg.name} → {run} (train claims it; check creates nothing)"),
+        *_records("train", train, d.train),
+        *_records("validation", val, d.validation),
+    ]
+    if not val:
+        lines.append(
+            _line(
+                "",
+                "(scored on the identification data only; add held-out records as data.validation)",
+            )  # fmt: skip
+        )
+    if test:
+        lines += _records("test", test, d.test)
+    lines.append(_line("velocity", _velocity(cfg)))
+    lines.append(_line("units", _units(d.position_unit, train)))
+    if d.position_unit != "rad" or d.start or d.stop is not None or d.input_delay:
+        span = f"samples {d.start} … {'end' if d.stop is None else d.stop - 1}"
+        lines.append(
+            _line("reading", f"q in {d.position_unit}, {span}, input delay {d.input_delay}")
+        )
+    lines += _model_lines(cfg, base, start, init_kind)
+    lines += _estimator_lines(cfg, sum(e.n for e in train))
+    lines += [_line("warning", w) for w in found]
+    if warnings is not None:
+        warnings.extend(found)
+    return "\n".join(lines)
+
+
+def _units(unit: str, train: list[Experiment]) -> str:
+    """The units the data are read in, with the identification data's top speed in them: the
+    number that shows a position in degrees (or mm) read as rad (or m) at a glance."""
+    si = si_unit(unit)
+    speeds = [float(e.qdot.abs().max()) for e in train if e.qdot is not None and e.n]
+    if not speeds:
+        return f"t in s, q in {unit} (read as {si})"
+    v = max(speeds)
+    turns = f" = {rpm(v):,.0f} rpm" if si == "rad" else ""
+    return (
+        f"t in s, q in {unit}: |q̇| reaches {v:.3g} {si}/s{turns} in the identification data; "
+        "if your machine never moves that fast, set data.position_unit"
+    )
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from ..config import Config
+
+    cfg = Config.load(args.config, list(args.set or []))
+    print(check_run(cfg))
+    sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
+    train = f"torchfric train {shlex.quote(args.config)}{sets}"
+    print(f"ok          nothing written; train with: {train}")
+    return 0

@@ -1,0 +1,475 @@
+"""``torchfric init DATA --c-m VALUE``: a commented starter config for a user's data file.
+
+`write_starter` reads the file with the project's readers (`read_columns`, `load_experiment`:
+every check a run makes on a record; which columns are ours and the units: `torchfric.app.commands.columns`)
+and writes a config only once it has passed `check_run`.
+
+- Columns: ours (t, u, q, qdot) by name or a common alternative (`ALIASES`), without case and
+  without a unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name
+  wins. Two candidates, or none for t, u or q, stop with the header and the line to write.
+- Sample time: the t column's (uniform to the loader's 1e-3), or ``--time-step``. One that
+  looks like milliseconds is refused, not worked around: a step of `MS_STEP` (0.5 s, 2 Hz) or
+  more always (1 kHz in ms steps by 1.0; no servo record is sampled at 2 Hz), a step of 0.05 s
+  or more when the data check (`torchfric.data.data_warnings`, as ``check`` runs it with the
+  default 200 Hz filter) finds q or qdot moving as if sampled much faster. Any other rate too
+  slow for the 200 Hz velocity filter (100 Hz, the 40 Hz disc) gets ``velocity_cutoff_hz`` =
+  0.4 × Nyquist.
+- Units of q: a unit in the column's name sets ``position_unit``; without one q is taken as
+  rad (or m), with a note when whole numbers only (encoder counts) or a speed above
+  `FAST_SPEED` units/s (about 1000 rpm in rad) suggest otherwise; for the speed, the comment
+  beside ``position_unit`` says the line to write for degrees. The unit is never changed.
+- Model: the white-box terms (``offset``, ``gravity``, ``asymmetric``) are written commented
+  out, each with when to turn it on.
+- Validation: ``data.start``/``stop`` apply to every file, so one file cannot be split by
+  sample ranges. ``--split F`` (only when asked) writes its first fraction F and the rest as two
+  new CSV files beside the config; otherwise a record beside the data named as its held-out
+  record (``run1_train`` ↔ ``run1_val`` or ``run1_test``, ``identification`` ↔ ``validation``,
+  ``train`` ↔ ``test``) with the same columns and sample time is proposed as validation, or a
+  comment says how to add one; with both a validation- and a test-named record, the test one
+  goes to ``data.test``. Nothing is replaced: not the data, not a split file; the config only
+  with ``--force``.
+
+Why this size: one plan, read top to bottom (the file → columns, units, split → the commented
+config text it writes); the header's column mapping is apart, in `columns`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import pathlib
+import re
+import textwrap
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_experiment
+from ...data.readers import read_columns, save_csv
+from ...data.units import POSITION_UNITS
+from ...errors import TorchfricError
+from ...files import atomic_write_text
+from ...models.friction import FRICTIONS
+from ...version import __version__
+from ..config import MAX_NAME, Config, EstimatorConfig, ModelConfig, toml_value
+from .check import check_run
+from .columns import (
+    map_columns,
+    parse_columns,
+    position_unit_guess,
+    refuse_milliseconds,
+    refuse_time_unit,
+    slow_cutoff,
+)
+
+__all__ = ["cmd_init", "write_starter"]
+
+_TRAIN_WORDS = {"train", "training", "identification", "ident", "id", "idf", "estimation", "fit"}
+_VALID_WORDS = {"val", "valid", "validation", "validate"}
+_TEST_WORDS = {"test", "testing"}
+_MIN_PART = 100  # samples in each part of a --split
+
+
+# ------------------------------------------------------------------------------------ validation
+def _words(stem: str) -> list[str]:
+    return [w for w in re.split(r"[^a-z0-9]+", stem.lower()) if w]
+
+
+def _held_out(data: pathlib.Path, other: pathlib.Path) -> tuple[str, bool] | None:
+    """("validation" or "test", whether it pairs with `data`) when `other` is named as a
+    held-out record (a validation word wins over a test word), else None. It pairs when the
+    two names agree once the role words are dropped: ``run1_train`` ↔ ``run1_val`` and
+    ``run1_test``, ``train`` ↔ ``test``."""
+    words = _words(other.stem)
+    role = (
+        "validation"
+        if any(w in _VALID_WORDS for w in words)
+        else "test"
+        if any(w in _TEST_WORDS for w in words)
+        else None
+    )
+    if role is None:
+        return None
+    roles = _TRAIN_WORDS | _VALID_WORDS | _TEST_WORDS
+    rest = [w for w in words if w not in roles]
+    return role, rest == [w for w in _words(data.stem) if w not in roles]
+
+
+def _siblings(
+    data: pathlib.Path, mapping: Mapping[str, str], time_step: float | None, dt: float
+) -> tuple[list[pathlib.Path], list[pathlib.Path], list[pathlib.Path]]:
+    """(validation, test, other): the held-out-named records beside `data` that read with its
+    columns and sample time (`_held_out`); the first two pair with `data`, the last do not.
+    Test-named ones are the validation when no validation-named one pairs."""
+    found: dict[tuple[str, bool], list[pathlib.Path]] = {}
+    for p in sorted(data.parent.iterdir()):
+        if p == data or p.suffix.lower() != data.suffix.lower() or not p.is_file():
+            continue
+        kind = _held_out(data, p)
+        if kind is None:
+            continue
+        try:
+            exp = load_experiment(p, columns=mapping, time_step=time_step)
+        except TorchfricError:
+            continue
+        if abs(exp.dt - dt) <= 1e-3 * dt:
+            found.setdefault(kind, []).append(p)
+    val, test = found.get(("validation", True), []), found.get(("test", True), [])
+    other = sorted(found.get(("validation", False), []) + found.get(("test", False), []))
+    return (val, test, other) if val else (test, [], other)
+
+
+def _split(
+    exp: Experiment, fraction: float, folder: pathlib.Path, stem: str
+) -> dict[pathlib.Path, Experiment]:
+    """{new file: its part} for ``--split``: the first `fraction` and the rest."""
+    k = round(fraction * exp.n)
+    if min(k, exp.n - k) < _MIN_PART:
+        raise TorchfricError(
+            f"--split {fraction:g} leaves {min(k, exp.n - k)} samples in one part of "
+            f"{exp.n}; each part needs at least {_MIN_PART}: choose a fraction nearer 0.5"
+        )
+    parts = {
+        folder / f"{stem}_identification.csv": exp.slice(0, k),
+        folder / f"{stem}_validation.csv": exp.slice(k),
+    }
+    for p in parts:
+        if p.exists() or p.is_symlink():
+            raise TorchfricError(
+                f"--split would write {p}, which exists; init never replaces a data file: move "
+                "it away, or write the config into another folder with --out"
+            )
+    return parts
+
+
+# ------------------------------------------------------------------------------------ the text
+def _comment(*comment: str) -> list[str]:
+    """`comment` wrapped as ``#`` lines."""
+    text = " ".join(c for c in comment if c)
+    return textwrap.wrap(text, 96, initial_indent="# ", subsequent_indent="# ") if text else []
+
+
+def _block(key: str, value: object, *comment: str, active: bool = True) -> list[str]:
+    """`comment` wrapped as ``#`` lines, then ``key = value`` (commented out unless `active`)."""
+    return [*_comment(*comment), ("" if active else "# ") + f"{key} = {toml_value(value)}"]
+
+
+def _rel(path: pathlib.Path, folder: pathlib.Path) -> str:
+    """`path` relative to the config's `folder` (how `Config.load` reads it), else absolute."""
+    try:
+        return os.path.relpath(path, folder)
+    except ValueError:  # another drive
+        return str(path)
+
+
+class _Plan:
+    """What init found and decided; `text` writes it as the commented config."""
+
+    def __init__(self, data: pathlib.Path, out: pathlib.Path, c_m: float) -> None:
+        self.data, self.out, self.folder, self.c_m = data, out, out.parent, c_m
+        # the run is named after the config (`--out my_axis.toml` → runs/my_axis/), which by
+        # default is named after the data file
+        stem = re.sub(r"[^A-Za-z0-9._+-]+", "_", out.stem).lstrip("._+-")[:MAX_NAME]
+        self.name = stem or "run"
+        self.mapping: dict[str, str] = {}
+        self.time_step: float | None = None
+        self.notes: list[str] = []
+        self.train: list[pathlib.Path] = [data]
+        self.validation: list[pathlib.Path] = []
+        self.test: list[pathlib.Path] = []
+        self.others: list[pathlib.Path] = []
+        self.splits: dict[pathlib.Path, Experiment] = {}
+        self.split = ""
+
+    def _validation(self) -> list[str]:
+        val = [_rel(p, self.folder) for p in self.validation]
+        if self.split or val:
+            return _block("validation", val, _HELP["validation"], "" if self.split else _FOUND)
+        others = [_rel(p, self.folder) for p in self.others]
+        named = f" (named like one, beside the data: {', '.join(others)})" if others else ""
+        none = _NONE.format(named=named, data=self.data.name)
+        return _block(
+            "validation", others or ["second.csv"], _HELP["validation"], none, active=False
+        )
+
+    def _test(self) -> list[str]:
+        if not self.test:
+            return []
+        test = [_rel(p, self.folder) for p in self.test]
+        return _block("test", test, _HELP["test"], _FOUND)
+
+    def _data(self) -> list[str]:
+        units = ", ".join(f'"{u}"' for u in POSITION_UNITS)
+        lines = ["[data]", *_block("train", [_rel(p, self.folder) for p in self.train],
+                                   self.split, _HELP["train"]), *self._validation(),
+                 *self._test()]  # fmt: skip
+        if self.mapping:
+            lines += _block("columns", self.mapping, _HELP["columns"])
+        if self.time_step is not None:
+            lines += _block("time_step", self.time_step, "Sample time [s]: the file has no t.")
+        unit = f"Unit of q in the file: {units} (q becomes rad or m); {self.unit_why}."
+        lines += _block("position_unit", self.unit, unit, self.unit_hint)
+        lines += _block("velocity", "highpass", _HELP["velocity"])
+        why = f"The velocity filter's cut-off [Hz], below Nyquist ({0.5 / self.exp.dt:g} Hz)."
+        if self.cutoff is not None:
+            why += " Set to 0.4 × Nyquist: the default 200 Hz is too fast for this sampling."
+        lines += _block(
+            "velocity_cutoff_hz",
+            self.cutoff or DEFAULT_CUTOFF_HZ["highpass"],
+            why,
+            active=bool(self.cutoff),
+        )
+        return lines + _block("stop", self.exp.n, _HELP["stop"], active=False)
+
+    def text(self) -> str:
+        exp, out = self.exp, self.out.name
+        model, est = ModelConfig(c_m=self.c_m), EstimatorConfig()
+        head = [
+            f"# Starter config for {self.data.name}, by `torchfric init` (torchfric {__version__})",
+            f"#   torchfric check {out}    what a run would do (checks all, writes nothing)",
+            f"#   torchfric train {out}    identify the model, in runs/{self.name}/",
+            "# Every key, its default and allowed values: docs/config.md in the torchfric source.",
+            f"# {self.data.name}: {exp.n} samples, dt = {exp.dt:.6g} s ({1 / exp.dt:.6g} Hz, "
+            f"uniform to {self.jitter:.2g} of a step), {exp.duration:.6g} s.",
+            *[f"# Note: {n}" for n in self.notes],
+            "",
+            *_block("name", self.name, _HELP["name"]),
+            *_block("seed", 0, _HELP["seed"]),
+            "",
+            *self._data(),
+            "",
+            "[model]",
+        ]
+        for key in ("friction", "size", "c_m", "init", "inertia", "viscous"):
+            head += _block(key, getattr(model, key), _HELP.get(key, ""))
+        head += _comment(_TERMS_HELP)
+        for key, example, why in _TERMS:
+            head += _block(key, example, why, active=False)
+        head += ["", "[estimator]"]
+        for key in ("method", "passes", "tolerance", "ensemble"):
+            head += _block(key, getattr(est, key), _HELP.get(key, ""))
+        return "\n".join(head) + "\n"
+
+
+_TERMS_HELP = (
+    "White-box terms, each off until you remove the # before its line; the number is the "
+    'initial guess (init = "prefit" fits it from the data).'
+)
+_TERMS = (
+    ("offset", 0.0, "A constant force or torque (gravity on a tilted linear axis, a "
+     "cable, an amplifier offset); try it when the simulation drifts one way (EMPS needs it)."),
+    ("gravity", 0.1, "g_c·sin q of an unbalanced rotating arm (g_c = m·g·l > 0, q in "
+     "rad or deg, 0 hanging straight down); for an arm that swings back when let go."),
+    ("asymmetric", 0.0, "a·|q̇|, viscous slope b + a forwards and b − a backwards; "
+     "try it when the machine runs faster one way than the other under the same input."),
+    ("dynamic", "lugre", "LuGre bristle dynamics around the learned curve (stick, pre-sliding, "
+     "hysteresis); try it when a small reversal moves a few encoder counts and comes back, or "
+     "when static models cannot lift the validation FIT. Set model.sigma0 so that the "
+     "pre-sliding range (static friction / sigma0) is a few encoder counts."),
+)  # fmt: skip
+"""[model] keys written commented out: (key, example value, when to turn it on)."""
+_FOUND = (
+    "Found beside the data file, named as its held-out record (validation or test), with the "
+    "same columns and sample time: remove the line if it is not a record of this machine."
+)
+_NONE = (
+    "None yet: a run is then scored on its own identification data, which says little about the "
+    "model. Name a second record of this machine (another input signal) here{named}, or rerun "
+    "init with --split 0.7 to hold out the last 30 % of {data} (written as two new files beside "
+    "this config)."
+)
+_HELP = {
+    "train": "Identification records (paths relative to this file); every pass uses all of them.",
+    "validation": "Held-out records: open-loop FIT after every pass, which picks the pass kept.",
+    "test": "Held-out records scored once, at the end; they pick nothing.",
+    "columns": "Our name = the file's: t time [s], u input, q position, qdot velocity (optional).",
+    "velocity": 'q̇ for the estimator: "highpass" (the paper\'s causal differentiator), '
+    '"zero_phase" (off-line) or "measured" (the file\'s qdot column).',
+    "stop": "Use samples start <= k < stop of every file (also: start = 0).",
+    "name": "The run: directory out_dir/name (out_dir: runs, relative to where train runs), "
+    "checkpoint name.pt.",
+    "seed": "Seeds the random parts (ensemble starts, output-error batches).",
+    "friction": "Friction curve C(q̇): " + ", ".join(f'"{f}"' for f in FRICTIONS) + ".",
+    "size": "Neurons (tanh) or local models (polytopic: odd).",
+    "c_m": "The motor constant: torque (N·m) or force (N) per unit of u, in M q̈ = c_m·u − "
+    "b·q̇ − C(q̇). It is given, not estimated (estimate_c_m = false): from u and q alone it "
+    "cannot be, since c_m, M, b and C scaled by one factor give the same q. It sets the units "
+    "of every estimated parameter.",
+    "init": 'The start: "prefit" (least squares on the identification data), "config" (the '
+    "guesses below) or a checkpoint.",
+    "inertia": 'Initial guesses of M and b for init = "config".',
+    "method": '"ekf" (the paper\'s iterative augmented-state EKF) or "output_error" '
+    "(simulation-error training).",
+    "passes": "EKF passes over the data, at most; they stop, converged, once a pass raises the "
+    "innovation log-likelihood by less than `tolerance` nats per parameter (0: never).",
+    "ensemble": "1: the start under 3 Q × 3 R tunings (9 filters), the best kept; 0: one "
+    "filter, the paper's method.",
+}
+
+
+# ------------------------------------------------------------------------------------ writing
+def _c_m(value: float | str | None) -> float:
+    if value is None:
+        raise TorchfricError(
+            "--c-m is required: the motor constant, torque (N·m) or force (N) per unit of the "
+            "input u (e.g. the torque constant in N·m/A times the gear ratio); torchfric does "
+            "not estimate it by default, because from u and q alone it cannot be told from the "
+            "inertia and friction: e.g. torchfric init data.csv --c-m 0.5"
+        )
+    try:
+        c_m = float(value)
+    except ValueError:
+        c_m = math.nan
+    if not (math.isfinite(c_m) and c_m > 0):
+        raise TorchfricError(
+            f"--c-m {value}: expected a positive number, the motor constant (torque or force "
+            "per unit of u), e.g. --c-m 16"
+        )
+    return c_m
+
+
+def _out_path(data: pathlib.Path, out: str | os.PathLike[str] | None, force: bool) -> pathlib.Path:
+    target = pathlib.Path(f"{data.stem}.toml" if out is None else out).absolute()
+    if target.suffix.lower() in (".csv", ".npz", ".mat") or target.resolve() == data.resolve():
+        raise TorchfricError(
+            f"--out {target} names a data file; init writes a config: give a .toml file name"
+        )
+    if target.is_dir():
+        raise TorchfricError(f"--out {target} is a folder; give a .toml file name")
+    if target.exists() and not force:
+        raise TorchfricError(
+            f"{target} exists; give another name with --out, or --force to replace it"
+        )
+    if not target.parent.is_dir():
+        raise TorchfricError(f"--out {target}: the folder {target.parent} does not exist")
+    return target
+
+
+def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> None:
+    """Columns, the record, its sample time and the unit of q into `plan`."""
+    data = plan.data
+    plan.mapping = map_columns(read_columns(data), columns, data, time_step is not None)
+    plan.read_as = dict(plan.mapping)
+    refuse_time_unit(plan.mapping, data)
+    plan.time_step = time_step if "t" not in plan.mapping else None
+    plan.exp = exp = load_experiment(data, columns=plan.mapping, time_step=time_step)
+    refuse_milliseconds(exp, plan.mapping.get("t"), data)
+    steps = np.diff(exp.t.numpy())
+    plan.jitter = float(np.max(np.abs(steps - np.median(steps))) / np.median(steps))
+    plan.unit, plan.unit_why, plan.unit_hint, notes = position_unit_guess(
+        plan.mapping["q"], exp.q.numpy(), exp.dt, plan.out.name
+    )
+    plan.notes += notes
+    plan.cutoff = slow_cutoff(exp.dt)
+
+
+def _propose_validation(plan: _Plan, split: float | str | None) -> None:
+    if split is None:
+        plan.validation, plan.test, plan.others = _siblings(
+            plan.data, plan.mapping, plan.time_step, plan.exp.dt
+        )
+        return
+    try:
+        fraction = float(split)
+    except ValueError:
+        fraction = math.nan
+    if not 0 < fraction < 1:
+        raise TorchfricError(
+            f"--split {split}: expected the identification part's fraction, between 0 and 1, "
+            "e.g. --split 0.7 (the first 70 % identify, the last 30 % validate)"
+        )
+    plan.splits = _split(plan.exp, fraction, plan.folder, plan.data.stem)
+    plan.train, plan.validation = list(plan.splits)[:1], list(plan.splits)[1:]
+    k = plan.splits[plan.train[0]].n
+    plan.split = (
+        f"--split {fraction:g}: samples 0 … {k - 1} of {plan.data.name} identify, the other "
+        f"{plan.exp.n - k} validate (written by init as the two files below)"
+    )
+    plan.mapping, plan.time_step = {}, None  # the new files name t, u, q (and qdot)
+
+
+def _write(plan: _Plan, force: bool) -> list[str]:
+    """Write the split files (if any) and the config once the config passes `check_run`;
+    a failure removes what this call wrote. Returns the data warnings."""
+    text, found, written = plan.text(), [], []
+    try:
+        for path, part in plan.splits.items():
+            save_csv(path, part)
+            written.append(path)
+        cfg = Config.loads(text, base_dir=plan.folder, source=str(plan.out))
+        check_run(cfg, warnings=found)
+        if plan.out.exists() and not force:
+            raise TorchfricError(f"{plan.out} appeared meanwhile; init leaves it as it is")
+        atomic_write_text(plan.out, text)
+    except BaseException:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
+    return found
+
+
+def write_starter(
+    data: str | os.PathLike[str],
+    *,
+    c_m: float | str | None,
+    out: str | os.PathLike[str] | None = None,
+    force: bool = False,
+    split: float | str | None = None,
+    columns: Mapping[str, str] | Sequence[str] = (),
+    time_step: float | None = None,
+) -> list[str]:
+    """Write a commented starter config for the record `data`; returns what to tell the user.
+
+    Args:
+        data: the user's record (.csv; .npz and .mat read too).
+        c_m: the motor constant (required; a string from the command line is parsed).
+        out: the config file (default ``<data stem>.toml`` in the working directory); never
+            replaced unless `force`.
+        split: identification fraction: write the record's first part and the rest as two new
+            CSV files beside the config, for identification and validation.
+        columns: our name → the file's (a mapping, or ``"q=NAME"`` strings), where the names
+            do not tell.
+        time_step: sample time in s for a file without a time column.
+    """
+    c = _c_m(c_m)
+    path = pathlib.Path(data).absolute()
+    if not path.is_file():
+        raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")
+    mapping = parse_columns(columns)
+    plan = _Plan(path, _out_path(path, out, force), c)
+    _read(plan, mapping, time_step)
+    _propose_validation(plan, split)
+    found = _write(plan, force)
+    exp = plan.exp
+    lines = [
+        f"data        {plan.data.name}: {exp.n} samples, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} Hz, "
+        f"uniform to {plan.jitter:.2g} of a step), {exp.duration:.6g} s",
+        "columns     " + ", ".join(f"{k} = {v!r}" for k, v in plan.read_as.items()),
+        f"position    {plan.unit} ({plan.unit_why})",
+    ]
+    if plan.validation:
+        lines.append("validation  " + ", ".join(p.name for p in plan.validation))
+    else:
+        lines.append("validation  none (see the comment in the config, or use --split 0.7)")
+    if plan.test:
+        lines.append("test        " + ", ".join(p.name for p in plan.test))
+    lines += [f"note        {n}" for n in plan.notes]
+    lines += [f"warning     {w}" for w in found]
+    lines += [f"wrote       {p}" for p in (*plan.splits, plan.out)]
+    lines.append(f"next        torchfric check {plan.out.name}; torchfric train {plan.out.name}")
+    return lines
+
+
+def cmd_init(args: argparse.Namespace) -> int:
+    lines = write_starter(
+        args.data,
+        c_m=args.c_m,
+        out=args.out,
+        force=args.force,
+        split=args.split,
+        columns=args.column or (),
+        time_step=args.time_step,
+    )
+    print("\n".join(lines))
+    return 0

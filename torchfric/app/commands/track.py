@@ -1,0 +1,315 @@
+"""``torchfric track CHECKPOINT DATA --out DIR``: follow a machine on-line from an identified model.
+
+The checkpoint's θ and ``P_θθ`` start the recursive EKF (`torchfric.estimators.tracking`) over a
+record, or over a file that is still being written (``--follow``), with the filter tuning of the
+run that made the checkpoint and the ``[track]`` settings of its config (``--set track.KEY=V``).
+Into its own new directory it writes, as it goes:
+
+- ``track.csv``: ``t`` and every parameter's value and σ (physical units), a row every
+  ``--every`` samples;
+- ``events.json``: ``{"changes": [t, …], "detector": {…}}``, rewritten at each change;
+- at the end: ``final.pt`` (an ordinary checkpoint of the last estimate: evaluate, simulate,
+  export, train's ``model.init`` take it), ``track.png`` (the parameter tracks with ±2σ and the
+  change times) and TensorBoard logs (the same tracks, per sample index).
+
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+from typing import Any
+
+from ...errors import TorchfricError
+from ...files import atomic_write_text, json_safe
+
+__all__ = ["cmd_track"]
+
+_BLOCK = 100  # tracker rows converted and written to track.csv at a time
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    if args.every < 1:
+        raise TorchfricError(f"--every must be an integer >= 1, got {args.every}")
+    if args.idle <= 0:
+        raise TorchfricError(f"--idle must be > 0 seconds, got {args.idle}")
+    from .evaluate import load_for_eval
+
+    for item in args.set or []:
+        if not item.startswith(("track.", "estimator.")):
+            raise TorchfricError(
+                f"--set {item}: torchfric track takes track.* and estimator.* keys (its settings "
+                "and the filter's tuning); the record is read as the run read its records, with "
+                "--column and --position-unit for another file's columns and unit"
+            )
+    model, cfg, exp, unit, raw = load_for_eval(args)
+    if args.set:
+        cfg = cfg.with_overrides(list(args.set))
+    out = pathlib.Path(args.out)
+    if not args.data.startswith("rig:") and pathlib.Path(args.data).resolve() == out.resolve():
+        raise TorchfricError(f"--out {out} is the data file; give a new directory")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise TorchfricError(
+            f"--out {out} exists and is not empty; torchfric track writes only into a new or "
+            "empty directory, never over an earlier one: give another --out"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    session = _Session(model, cfg, raw, exp, out, args)
+    try:
+        session.feed(exp)
+        if args.follow:
+            session.follow(args)
+    except KeyboardInterrupt:
+        sys.stderr.write("interrupted: writing what was tracked so far\n")
+    except TorchfricError:  # a diverged filter: what was tracked before it is kept, then the error
+        if session.ts:
+            session.finish()
+        raise
+    session.finish()
+    return 0
+
+
+def _tuning(raw: dict[str, Any], cfg: Any, exp: Any) -> Any:
+    """The run's EKF tuning in absolute units: as the run resolved it (its checkpoint's
+    ``estimator.state.tuning``), else resolved at this record's velocity scale."""
+    import dataclasses
+
+    tuning = cfg.estimator.ekf_tuning()
+    stored = (raw.get("estimator") or {}).get("state", {}).get("tuning")
+    if stored:
+        fields = {f.name for f in dataclasses.fields(tuning)}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in stored.items()}
+        return dataclasses.replace(tuning, **{k: v for k, v in values.items() if k in fields})
+    return tuning.resolved([exp])
+
+
+class _Session:
+    """One tracking run: the tracker, its open output files, and the rows so far."""
+
+    def __init__(self, model, cfg, raw, exp, run: pathlib.Path, args) -> None:  # type: ignore[no-untyped-def]
+        import torch
+
+        from ...estimators.tracking import Tracker
+
+        self.model, self.cfg, self.run, self.args = model, cfg, run, args
+        self.settings = cfg.track  # a TrackSettings, checked (`sections.TrackConfig`)
+        tuning = _tuning(raw, cfg, exp)
+        theta, P_theta = _start(raw, model, self.settings)
+        self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
+                               every=args.every, compile=tuning.compile)  # fmt: skip
+        self.measure = tuning.measure
+        # per row: the time, the physical values and their σ; the last θ and P_θθ for final.pt
+        self.ts: list[float] = []
+        self.values: list[list[float]] = []
+        self.stds: list[list[float]] = []
+        self.last: tuple[Any, Any] | None = None
+        self.seen = 0
+        self.seconds = 0.0  # in the tracking loop itself (filter, detector, rows)
+        self.first: tuple[float, int] | None = None  # (seconds, samples) of the first chunk
+        self.t0 = time.perf_counter()
+        self.names = list(model.theta_names)
+        self.csv = open(run / "track.csv", "w", encoding="utf-8")  # noqa: SIM115 (kept open)
+        cols = ["t"] + [c for n in self.names for c in (n, f"{n}_std")]
+        self.csv.write(",".join(cols) + "\n")
+        self._events()
+        self.torch = torch
+
+    def feed(self, exp: Any) -> None:
+        """Track the samples of `exp` beyond those already seen."""
+        from ...estimators.tracking import tracking_data
+
+        t, u, y = tracking_data(exp, self.measure)
+        if self.seen >= t.numel():
+            return
+        t, u, y = t[self.seen :], u[self.seen :], y[self.seen :]
+        changes = len(self.tracker.changes)
+        start = time.perf_counter()
+        block = []
+        for row in self.tracker.run(t, u, y):
+            if self.first is None:  # the session's first chunk builds or loads the C code
+                self.first = (time.perf_counter() - start, self.tracker.samples)
+            block.append(row)
+            if len(block) == _BLOCK:
+                self._write(block)
+                block = []
+        if block:
+            self._write(block)
+        self.seconds += time.perf_counter() - start
+        self.seen += t.numel()
+        if len(self.tracker.changes) > changes:
+            self._events()
+            for c in self.tracker.changes[changes:]:
+                self._say(f"change detected at t = {c:.3f} s; P_θθ re-opened")
+        self._say(f"{self.seen} samples tracked, t = {float(t[-1]):.3f} s")
+
+    def _write(self, rows: list[Any]) -> None:
+        """Rows of the tracker into track.csv (flushed) and the session's tracks."""
+        from ...estimators.uncertainty import physical_std
+
+        torch = self.torch
+        thetas = torch.stack([r.theta for r in rows])
+        values = self.model.to_physical(thetas)
+        variances = torch.stack([torch.diagonal(r.P_theta) for r in rows])
+        stds = physical_std(self.model, thetas, variances)
+        table = torch.stack([values, stds], dim=-1).reshape(len(rows), -1).tolist()
+        for row, cells in zip(rows, table, strict=True):
+            self.csv.write(",".join(map(repr, [row.t, *cells])) + "\n")
+        self.csv.flush()
+        self.ts.extend(r.t for r in rows)
+        self.values.extend(values.tolist())
+        self.stds.extend(stds.tolist())
+        self.last = (rows[-1].theta, rows[-1].P_theta)
+
+    def follow(self, args: argparse.Namespace) -> None:
+        """Re-read the growing file and track its new samples, until `args.idle` seconds pass
+        without any."""
+        from ..run import load_record
+
+        last = time.monotonic()
+        while time.monotonic() - last < args.idle:
+            time.sleep(min(1.0, args.idle / 10))
+            try:  # the record as the first read took it (`load_for_eval`'s data config)
+                exp, _ = load_record(self.cfg, args.data)
+            except TorchfricError:
+                continue  # a row being written: read again at the next poll
+            if exp.n > self.seen:
+                self.feed(exp)
+                last = time.monotonic()
+
+    def finish(self) -> None:
+        self.csv.close()
+        self._events()
+        if self.last is None:
+            raise TorchfricError(
+                "no sample was tracked: the record has fewer than 2 samples, or tracking stopped "
+                "before its first chunk"
+            )
+        theta, P_theta = self.last
+        final = self.model.set_theta(theta)
+        _final_checkpoint(final, self.cfg, theta, P_theta, self.run, self.tracker, self.seen)
+        figure = _track_figure(self.model.theta_names, self)
+        from ..artifacts import pixels, png_from_pixels
+
+        px = pixels(figure)
+        (self.run / "track.png").write_bytes(png_from_pixels(px))
+        _tensorboard(self.run, self.model.theta_names, self, px)
+        seconds = time.perf_counter() - self.t0
+        first_s, first_n = self.first or (0.0, 0)
+        rate = (self.tracker.samples - first_n) / max(self.seconds - first_s, 1e-9)
+        print(
+            f"torchfric: tracked {self.seen} samples in {self.seconds:.2f} s ({rate:,.0f} "
+            f"samples/s, {rate * float(self.tracker.dt):,.0f}× real time, after a first chunk "
+            f"of {first_s:.2f} s that built or loaded the filter's C code; {seconds:.1f} s with "
+            "the outputs)"
+        )
+        print("changes     " + (", ".join(f"{c:.3f} s" for c in self.tracker.changes) or "none"))
+        for label, name in (("tracks", "track.csv"), ("events", "events.json"),
+                            ("checkpoint", "final.pt"), ("figure", "track.png")):  # fmt: skip
+            print(f"{label:<11} {self.run / name}")
+        print(f"tensorboard tensorboard --logdir {self.run}")
+
+    def _events(self) -> None:
+        det = self.tracker.detector
+        detector = None
+        if det is not None:
+            detector = {
+                "statistic": "one-sided CUSUM of the NIS block means, standardised by a baseline",
+                "block_samples": det.block,
+                "threshold": det.threshold,
+                "false_alarm_hours": self.settings.false_alarm_hours,
+                "calibrate_s": self.settings.calibrate,
+                "holdoff_s": self.settings.holdoff,
+            }
+        body = {"changes": list(self.tracker.changes), "detector": detector}
+        atomic_write_text(self.run / "events.json", json.dumps(json_safe(body)[0], indent=1) + "\n")
+
+    def _say(self, text: str) -> None:
+        if not self.args.quiet:
+            sys.stderr.write(f"  {text}\n")
+
+
+def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any]:
+    """θ and ``P_θθ`` to start from: the checkpoint's estimator state (an EKF run's covariance),
+    else its θ with ``reopen · I`` (output error keeps no covariance)."""
+    import torch
+
+    theta = model.get_theta()
+    state = (raw.get("estimator") or {}).get("state") or {}
+    P = state.get("P_theta")
+    k = theta.numel()
+    if P is not None and tuple(P.shape) == (k, k) and bool(torch.isfinite(P).all()):
+        return theta, torch.as_tensor(P, dtype=torch.float64).clone()
+    return theta, settings.reopen * torch.eye(k, dtype=torch.float64)
+
+
+def _final_checkpoint(model, cfg, theta, P_theta, run, tracker, samples) -> None:  # type: ignore[no-untyped-def]
+    from ..artifacts import build_checkpoint, save_checkpoint
+
+    payload = build_checkpoint(
+        model,
+        config=cfg,
+        estimator_state={"method": "track", "theta": theta.clone(), "P_theta": P_theta.clone()},
+        metrics={
+            "dt": float(tracker.dt),
+            "inertia": float(model.inertia.detach()),
+            "tracked_samples": samples,
+            "changes": list(tracker.changes),
+        },  # fmt: skip
+        data_fingerprints={},
+        name=run.name,
+        complete=True,
+        method="ekf",
+    )
+    save_checkpoint(run / "final.pt", payload)
+
+
+def _track_figure(names, session):  # type: ignore[no-untyped-def]
+    """The parameter tracks (physical values) with ±2σ bands and the change times."""
+    import math
+
+    import numpy as np
+
+    from ..artifacts import subplots
+
+    names, changes = list(names), session.tracker.changes
+    t = np.array(session.ts)
+    vals, stds = np.array(session.values), np.array(session.stds)
+    cols = 3 if len(names) > 4 else 2
+    nrows = math.ceil(len(names) / cols)
+    fig, axes = subplots(nrows, cols, figsize=(4.2 * cols, 2.3 * nrows), squeeze=False)
+    for i, ax in enumerate(axes.flat):
+        if i >= len(names):
+            ax.set_visible(False)
+            continue
+        ax.fill_between(t, vals[:, i] - 2 * stds[:, i], vals[:, i] + 2 * stds[:, i],
+                        color="C0", alpha=0.25, lw=0)  # fmt: skip
+        ax.plot(t, vals[:, i], "C0", lw=1.0)
+        for c in changes:
+            ax.axvline(c, color="C3", lw=1.0, ls="--")
+        ax.set_title(names[i], fontsize=9)
+        ax.tick_params(labelsize=7)
+    axes.flat[0].set_xlabel("t [s]", fontsize=8)
+    fig.suptitle("tracked parameters, ±2σ (red: detected changes)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def _tensorboard(run, names, session, px) -> None:  # type: ignore[no-untyped-def]
+    from torch.utils.tensorboard import SummaryWriter
+
+    writer = SummaryWriter(log_dir=str(run))
+    try:
+        dt = float(session.tracker.dt)
+        for t, values, stds in zip(session.ts, session.values, session.stds, strict=True):
+            step = round(t / dt)
+            for name, value, std in zip(names, values, stds, strict=True):
+                writer.add_scalar(f"track/{name}", value, step)
+                writer.add_scalar(f"track_std/{name}", std, step)
+        for c in session.tracker.changes:
+            writer.add_scalar("track/change", c, round(c / dt))
+        writer.add_image("track/parameters", px, len(session.ts), dataformats="CHW")
+    finally:
+        writer.close()

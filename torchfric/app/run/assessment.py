@@ -1,0 +1,169 @@
+"""Judging a run's model: open-loop scores, the warnings about a doubtful result, provenance."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ...data import Experiment
+from ...estimators.metrics import SimulationScore, score_simulation
+from ...models.arm import ArmModel
+from ..artifacts import read_checkpoint
+from ..config import Config
+
+__all__ = ["evaluate_model", "result_warnings", "provenance", "scoring_engine"]
+
+
+def scoring_engine(cfg: Config) -> str:
+    """The engine a run scores open-loop simulations with: the compiled twin of odeint's rk4
+    (the same steps) when the compiled paths are on (`estimator.compile`), else odeint."""
+    return "compiled" if cfg.estimator.compile else "odeint"
+
+
+def evaluate_model(
+    model: ArmModel, exps: list[Experiment], cfg: Config
+) -> dict[str, SimulationScore]:
+    """Open-loop simulation scores of `model` on each record, by record name."""
+    out = {}
+    for e in exps:
+        out[e.name] = score_simulation(
+            model,
+            e,
+            method=cfg.simulation.method,
+            substeps=cfg.simulation.substeps,
+            engine=scoring_engine(cfg),
+        )
+    return out
+
+
+def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
+    """A parameter at the search bound, or no inertia: the model is not physical."""
+    theta = final.get_theta().detach()
+    bound = cfg.estimator.theta_bound
+    at_bound = [
+        n for n, v in zip(final.theta_names, theta.tolist(), strict=True) if abs(v) >= 0.5 * bound
+    ]
+    if at_bound or not inertia > 1e-12:
+        return [
+            f"parameter(s) {', '.join(at_bound) or 'inertia'} at a bound (|θ| near "
+            f"estimator.theta_bound = {bound:g}, or inertia ≈ 0): the model is not physical"
+        ]
+    return []
+
+
+def _uninformed(cfg: Config, final: ArmModel, covariance: Any, start: ArmModel | None) -> list[str]:
+    """Parameters the data did not inform: their σ after the passes is still ≥ 90 % of the
+    start's (the filter's prior, `EKFTuning.initial_P_theta` at the starting θ)."""
+    if covariance is None or start is None or cfg.estimator.method != "ekf":
+        return []
+    P = torch.as_tensor(covariance, dtype=torch.float64)
+    P0 = cfg.estimator.ekf_tuning().initial_P_theta(start, start.get_theta())
+    prior, now = torch.diagonal(P0).sqrt(), torch.diagonal(P).clamp_min(0.0).sqrt()
+    names = [
+        n
+        for n, a, b in zip(final.theta_names, prior.tolist(), now.tolist(), strict=True)
+        if a > 0 and b >= 0.9 * a
+    ]
+    if not names:
+        return []
+    which = "its σ is" if len(names) == 1 else "their σ are"
+    return [
+        f"the data hardly informed {', '.join(names)}: {which} still at least 90 % of the "
+        "prior's (estimator.p0_theta), so the ± shows the prior, not what the data say; a "
+        "smaller model (model.size) or richer excitation would pin them down"
+    ]
+
+
+def result_warnings(
+    cfg: Config,
+    final: ArmModel,
+    metrics: dict[str, Any],
+    init_kind: str,
+    *,
+    covariance: Any = None,
+    start: ArmModel | None = None,
+) -> list[str]:
+    """Plain warnings about a result that is almost certainly wrong, or a part of it the data
+    did not inform (`metrics.json` "warnings"). `covariance` is the kept pass's P_θθ and `start`
+    the model the estimator started from (for the parameters the data left at their prior)."""
+    out = []
+    inertia, first = metrics["inertia"], metrics.get("initial_inertia")
+    source = "pre-fit" if init_kind == "prefit" else "initial value"
+    if first and inertia > 0 and max(inertia / first, first / inertia) > 3.0:
+        out.append(
+            f"inertia {inertia:.4g} is {inertia / first:.3g}× the {source}'s {first:.4g}: the "
+            "estimate moved far from what the data's inverse dynamics say; check model.c_m, the "
+            "units of t (seconds) and q (data.position_unit), and the filter's tuning "
+            "(estimator.r, estimator.p0_theta)"
+        )
+    out += _bound_warnings(cfg, final, inertia)
+    out += _uninformed(cfg, final, covariance, start)
+    for group in ("validation", "test", "identification"):
+        for name, m in metrics.get(group, {}).items():
+            fit = m.get("fit_q")
+            if fit is None or not fit == fit or fit < 0.0:
+                hint = (
+                    "; when the simulation drifts one way, a constant force or torque may be "
+                    "missing (gravity on a tilted axis, a cable, an amplifier offset): try "
+                    "--set model.offset=0.0"
+                    if cfg.model.offset is None
+                    else ""
+                )
+                out.append(
+                    f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
+                    f"worse than a constant); the model does not simulate this record{hint}"
+                )
+    if (
+        cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes
+        and metrics.get("converged") is False
+        and metrics.get("passes", 0) >= cfg.estimator.passes
+    ):
+        gain = metrics.get("last_gain")
+        moving = f" by {gain:.3g} nats" if gain is not None else ""
+        out.append(
+            f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with the "
+            f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
+            f"{cfg.estimator.tolerance:g} × the parameters: raise estimator.passes (each pass over "
+            f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
+            "meanwhile"
+        )
+    ident = metrics.get("identifiability") or {}
+    out += [m for m in ident.get("messages", []) if not m.startswith("(within")]
+    out += metrics.get("covariance_warnings", [])
+    far = _far_from_maximum(final, metrics)
+    if far:
+        out.append(far)
+    return out
+
+
+def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
+    """A white-box parameter whose kept value is more than 2 σ from the optimum of the error
+    criterion its σ belongs to (one Newton step away, `PEMCovariance.newton`)."""
+    cov = metrics.get("covariance") or {}
+    steps = cov.get("newton_step_sigma")
+    if not steps:
+        return None
+    far = [
+        f"{n} ({s:+.1f} σ)"
+        for n, s in zip(cov.get("names", []), steps, strict=False)
+        if n in ("inertia", "viscous", "offset", "gravity", "asymmetric") and abs(s) > 2.0
+    ]
+    if not far:
+        return None
+    return (
+        f"the kept θ is not at the optimum of its error criterion ({cov.get('method')}): "
+        f"{', '.join(far)} away; its ± σ describe the spread around that optimum, so the error "
+        "may exceed them"
+    )
+
+
+def provenance(cfg: Config, init_kind: str) -> str:
+    """Which estimator(s) produced the model: this run's, after a warm start's chain."""
+    method = cfg.estimator.method
+    if init_kind.startswith("checkpoint:"):
+        raw = read_checkpoint(init_kind[len("checkpoint:") :])
+        before = raw.get("metrics", {}).get("estimator") or raw.get("estimator", {}).get("method")
+        if before:
+            return f"{before}+{method}"
+    return method

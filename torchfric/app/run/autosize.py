@@ -1,0 +1,109 @@
+"""``model.size = "auto"``: the run's friction size, chosen from its identification data.
+
+`choose_size` runs before the run proper (`torchfric.app.run.runner`, ``_Run.prepare``; it writes
+nothing): it builds the starting model of every candidate size (``model.sizes``, by default
+`AUTO_SIZES`) the way a run builds its own (`config_model`, `initial_model`: the pre-fit or the
+config's values), hands them to `torchfric.estimators.sizing.compare_sizes` with the run's EKF
+tuning and ensemble grid, and returns the config with the chosen size, which the run then trains
+like any other. The table of sizes goes into ``metrics.json`` (key ``sizes``), ``report.html``
+and the summary (`size_lines`).
+
+The run's own ``config.toml`` keeps ``size = "auto"`` (what was asked; ``--resume`` compares
+it); the checkpoint's model has the chosen size. A resumed run chooses again, the same way (the
+same size and table), before it continues from its snapshot.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from ...estimators.sizing import compare_sizes, nests
+from ...resources import ekf_bytes, require_memory
+from ..config import AUTO_SIZES, Config
+from .inputs import check_resources, config_model, initial_model
+
+__all__ = ["choose_size", "choose_size_and_start", "candidate_sizes", "size_lines", "sized"]
+
+
+def candidate_sizes(cfg: Config) -> tuple[int, ...]:
+    """The sizes ``model.size = "auto"`` tries: ``model.sizes``, else the friction's default."""
+    return tuple(cfg.model.sizes) or AUTO_SIZES[cfg.model.friction]
+
+
+def sized(cfg: Config, size: int) -> Config:
+    """`cfg` with ``model.size = size`` (and no ``model.sizes``)."""
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, size=size, sizes=()))
+
+
+def choose_size(
+    cfg: Config, train: list[Any], say: Callable[[str], None] | None = None
+) -> tuple[Config, dict[str, Any] | None]:
+    """`cfg` with its size chosen from the identification records `train`, and the table of
+    sizes (`SizingResult.to_dict`); `cfg` itself and None when ``model.size`` is an integer
+    (`choose_size_and_start` without the start)."""
+    return choose_size_and_start(cfg, train, say)[:2]
+
+
+def choose_size_and_start(
+    cfg: Config, train: list[Any], say: Callable[[str], None] | None = None
+) -> tuple[Config, dict[str, Any] | None, tuple[Any, str] | None]:
+    """`choose_size`, and the chosen size's start (`initial_model`'s model and kind, already
+    built for the comparison, so a run need not pre-fit it again); None when ``model.size`` is
+    an integer.
+
+    Raises `TorchfricError` before any filter runs when a size's model or the batch of all
+    sizes' filters does not fit in memory, and when every filter of every size diverges."""
+    if cfg.model.size != "auto":
+        return cfg, None, None
+    say = say or (lambda _: None)
+    sizes = candidate_sizes(cfg)
+    starts = {}
+    for size in sizes:
+        one = sized(cfg, size)
+        base = config_model(one, train)
+        check_resources(one, train, base)
+        starts[size] = initial_model(one, train, base)
+    est = cfg.estimator
+    spec = est.ensemble_spec(cfg.seed) if est.ensemble > 0 else None
+    per_size = spec.size if spec is not None else 1
+    models = {size: start[0] for size, start in starts.items()}
+    batched = len(sizes) > 1 and nests(models)
+    filters = per_size * (len(sizes) if batched else 1)
+    largest = max(m.num_parameters for m in models.values())
+    require_memory(
+        ekf_bytes(largest, filters),
+        f'model.size = "auto": {filters} filters of up to {largest} parameters',
+        "give model.sizes fewer or smaller sizes, or lower estimator.ensemble",
+    )
+    how = "in one batch" if batched else "size by size"
+    listed = ", ".join(map(str, sizes))
+    say(
+        f'  model.size = "auto": {cfg.model.friction} sizes {listed} ({per_size} filter(s) '
+        f"each, {how}); the lowest BIC on the identification data's innovations is kept"
+    )
+    result = compare_sizes(models, train, est.ekf_tuning(), spec).to_dict()
+    result["friction"] = cfg.model.friction
+    for line in size_lines(result):
+        say("  " + line)
+    return sized(cfg, result["chosen"]), result, starts[result["chosen"]]
+
+
+def size_lines(sizes: Mapping[str, Any]) -> list[str]:
+    """The table of sizes (metrics' ``sizes``) as text lines: the summary's and the progress
+    output's."""
+    kind = f"{sizes['friction']} " if sizes.get("friction") else ""
+    lines = [
+        f"model size {kind}{sizes['chosen']} chosen by BIC = −2 ℓ + k ln N on the fixed-θ "
+        f"innovations (N = {sizes['samples']}, {sizes['seconds']:.1f} s; lowest wins):",
+        f"  {'size':>4}  {'k':>3}  {'log-likelihood ℓ':>16}  {'BIC':>14}",
+    ]
+    for row in sizes["table"]:
+        ll, bic = row["loglik"], row["bic"]
+        ll_text = f"{ll:16.1f}" if math.isfinite(ll) else f"{'diverged':>16}"
+        bic_text = f"{bic:14.1f}" if math.isfinite(bic) else f"{'–':>14}"
+        mark = "  ← chosen" if row["chosen"] else ""
+        lines.append(f"  {row['size']:>4}  {row['parameters']:>3}  {ll_text}  {bic_text}{mark}")
+    return lines

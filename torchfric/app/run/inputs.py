@@ -1,0 +1,214 @@
+"""From a config to what a run starts with: experiments, a memory check and the initial model.
+
+`load_record` reads one configured record (a file or ``rig:NAME``) the way a run does, and is
+what ``torchfric evaluate``/``simulate`` use for the file they are given; `load_data` reads the
+config's identification, validation and test groups; `check_resources` refuses a run too large
+for this machine before anything is written; `config_model` and `initial_model` build the model
+the estimator starts from.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from ...data import Experiment, data_warnings, load_experiment, make_experiment
+from ...data.units import POSITION_UNITS
+from ...errors import MissingColumn, TorchfricError
+from ...estimators.prefit import prefit
+from ...models.arm import ArmModel
+from ...models.friction import make_friction
+from ...resources import ekf_bytes, prefit_bytes, require_memory
+from ..artifacts import load_checkpoint, sha256_file
+from ..config import RIG_PREFIX, Config
+
+__all__ = ["load_record", "load_data", "check_resources", "config_model", "initial_model"]
+
+
+def _read_record(cfg: Config, path: str) -> tuple[Experiment, str]:
+    """The record at `path` (or the rig's ``rig:NAME``) in SI units, with its fingerprint."""
+    d = cfg.data
+    if path.startswith(RIG_PREFIX):
+        from ...accel.native.lugre import lugre_integrator
+        from ...data.rig import rig_experiment
+
+        name = path[len(RIG_PREFIX) :]
+        arrays = rig_experiment(name, seed=cfg.seed, integrate=lugre_integrator())
+        exp = make_experiment(arrays["t"], arrays["u"], arrays["q"], name=name)
+        if d.start or d.stop is not None:
+            exp = exp.slice(d.start, d.stop)
+        digest = exp.fingerprint()
+    else:
+        exp = load_experiment(
+            path, columns=d.columns or None, time_step=d.time_step, start=d.start, stop=d.stop
+        )
+        digest = sha256_file(path)
+    factor = POSITION_UNITS[d.position_unit]
+    if factor != 1.0:
+        exp = make_experiment(
+            exp.t,
+            exp.u,
+            exp.q * factor,
+            None if exp.qdot is None else exp.qdot * factor,
+            name=exp.name,
+        )
+    return exp, digest
+
+
+def load_record(
+    cfg: Config, path: str, warnings: list[str] | None = None
+) -> tuple[Experiment, str]:
+    """One experiment with velocity per `data.velocity` and input per `data.input_delay`, and
+    its fingerprint.
+
+    `torchfric.data.data_warnings` about the record (on the file's own columns, before the
+    velocity is rebuilt) are appended to `warnings`; when the velocity cannot be rebuilt they
+    are folded into the error instead.
+    """
+    d = cfg.data
+    exp, digest = _read_record(cfg, path)
+    found = data_warnings(exp, velocity=d.velocity, velocity_cutoff_hz=d.velocity_cutoff_hz)
+    if warnings is not None:
+        warnings.extend(found)
+    if d.velocity == "measured":
+        if exp.qdot is None:
+            raise MissingColumn(
+                f"data.velocity = 'measured' but {path} has no qdot column; map one in data.columns "
+                "or set data.velocity = 'highpass'",
+                role="qdot",
+            )
+    else:
+        try:
+            exp = exp.with_velocity(d.velocity, cutoff_hz=d.velocity_cutoff_hz)
+        except TorchfricError as err:
+            if not found:
+                raise
+            raise TorchfricError(
+                f"{'; '.join(found)} (the velocity reconstruction: {err})"
+            ) from None
+    if d.input_delay:
+        exp = exp.delay_input(d.input_delay)
+    return exp, digest
+
+
+def load_data(
+    cfg: Config, *, warnings: list[str] | None = None
+) -> tuple[list[Experiment], list[Experiment], list[Experiment], dict[str, str]]:
+    """(train, validation, test) experiments and SHA-256 fingerprints by path.
+
+    Warnings about the identification and validation records are appended to `warnings`.
+    """
+    prints: dict[str, str] = {}
+    groups = []
+    for group, paths in enumerate((cfg.data.train, cfg.data.validation, cfg.data.test)):
+        exps = []
+        for p in paths:
+            exp, digest = load_record(cfg, p, warnings if group < 2 else None)
+            prints[p] = digest
+            exps.append(exp)
+        groups.append(exps)
+    if not groups[0]:
+        raise TorchfricError("data.train is empty: give at least one identification file")
+    return groups[0], groups[1], groups[2], prints
+
+
+def check_resources(cfg: Config, train: list[Experiment], model: ArmModel) -> None:
+    """Refuse, before anything runs, a `model` (the configured one) or ensemble too large for
+    this machine's memory."""
+    n_theta = model.get_theta().numel()
+    samples = sum(e.n for e in train)
+    size = f"model.size = {cfg.model.size} ({n_theta} parameters)"
+    if cfg.model.init == "prefit":
+        require_memory(
+            prefit_bytes(n_theta, samples),
+            f"the pre-fit of {size} over {samples} samples",
+            "lower model.size, or use data.stop to fit on fewer samples",
+        )
+    est = cfg.estimator
+    if est.method == "ekf":
+        members = est.ensemble_spec(cfg.seed).size if est.ensemble > 0 else 1
+        what = (
+            f"an EKF ensemble of {members} filters (estimator.ensemble = {est.ensemble} starts × "
+            f"{len(est.ensemble_q_scales)} Q × {len(est.ensemble_r_scales)} R scales) with {size}"
+            if est.ensemble > 0
+            else f"the EKF with {size}"
+        )
+        require_memory(ekf_bytes(n_theta, members), what, "lower estimator.ensemble or model.size")
+
+
+def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel:
+    """The model with the configured initial guesses (friction sized to the data when unset)."""
+    m = cfg.model
+    kwargs: dict[str, Any] = {}
+    if m.friction in ("tanh", "polytopic"):
+        v_scale = m.velocity_scale
+        if v_scale is None and train:
+            v_all = torch.cat(
+                [e.qdot.abs() for e in train if e.qdot is not None] or [torch.ones(1)]
+            )
+            v_scale = float(torch.quantile(v_all, 0.95)) or 1.0
+        kwargs["velocity_scale"] = v_scale or 1.0
+        kwargs["torque_scale"] = m.torque_scale if m.torque_scale is not None else 0.1
+        if m.friction == "tanh" and m.saturation > 0 and m.log_positive:
+            kwargs["min_slope"] = m.saturation / kwargs["velocity_scale"]
+    kwargs["log_positive"] = m.log_positive
+    friction = make_friction(m.friction, m.size, **kwargs)
+    v_scale = kwargs.get("velocity_scale") or m.velocity_scale or 1.0
+    return ArmModel(
+        friction,
+        inertia=m.inertia,
+        viscous=None if m.friction == "polytopic" else m.viscous,
+        c_m=m.c_m,
+        offset=m.offset,
+        gravity=m.gravity,
+        asymmetric=m.asymmetric,
+        estimate_c_m=m.estimate_c_m,
+        log_positive=m.log_positive,
+        **_bristles(m, v_scale),
+    )
+
+
+def _bristles(m: Any, v_scale: float) -> dict[str, Any]:
+    """The dynamic-friction arguments of `ArmModel` from `[model]` (none for a static model);
+    σ1 unset is critically damped, ``2 sqrt(σ0 M)``; the stick velocity unset is 1 % of the
+    velocity scale (for tanh and polytopic the data's 95th percentile of |q̇| when
+    `model.velocity_scale` is unset too; for the baselines `model.velocity_scale`, else 1))."""
+    if m.dynamic == "none":
+        return {}
+    sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(m.sigma0 * m.inertia)
+    v_stick = m.stick_velocity if m.stick_velocity is not None else 0.01 * v_scale
+    return {"dynamic": m.dynamic, "sigma0": m.sigma0, "sigma1": sigma1, "stick_velocity": v_stick}
+
+
+def initial_model(
+    cfg: Config, train: list[Experiment], base: ArmModel | None = None
+) -> tuple[ArmModel, str]:
+    """Initial model per `model.init`: "prefit" (default), "config", or a checkpoint (warm start).
+
+    `base` is `config_model(cfg, train)` when the caller has it already."""
+    init = cfg.model.init
+    base = config_model(cfg, train) if base is None else base
+    if init == "config":
+        return base, "config"
+    if init == "prefit":
+        if base.state_size == 2:
+            return prefit(base, train).model, "prefit"
+        # A dynamic model: the static twin's pre-fit (its θ is the dynamic θ without σ0, σ1,
+        # which keep their configured guesses: equation error cannot see the bristles).
+        static = prefit(base.static_twin(), train).model
+        return base.with_static(static), "prefit"
+    warm = load_checkpoint(init)
+    if (
+        base.state_size != 2
+        and warm.state_size == 2
+        and warm.theta_names == base.static_twin().theta_names
+    ):
+        return base.with_static(warm), f"checkpoint:{init}"  # a static fit starts a LuGre one
+    if warm.theta_names != base.theta_names:
+        raise TorchfricError(
+            f"model.init checkpoint {init} has parameters {warm.theta_names} but this config's model "
+            f"has {base.theta_names}; use the same model.friction, model.size and terms"
+        )
+    return warm, f"checkpoint:{init}"

@@ -1,0 +1,296 @@
+"""The scores every observer reads, and the progress a user watches.
+
+- `ValidationScores`: the open-loop scores of each pass's model on the validation records (the
+  first observer of a run: the others read its scores, and the run keeps the pass it scores
+  best);
+- `KeptFigures`: a model's figures drawn to pixels (friction curve with its ±2σ band, each
+  validation record's response and residuals); the kept model's once per run, for TensorBoard
+  and report.html alike;
+- `ProgressLines`: the progress lines (``say``) in and after each pass or epoch, and tqdm bars
+  on a terminal;
+- the helpers that format a pass for them (`ekf_scalars`, `fit_text`, `duration`,
+  `ensemble_spread`, `best_member_loglik`).
+
+The run's whole list of observers is built in `torchfric.app.run.views.run_observers`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, TextIO
+
+from ...data import Experiment
+from ...estimators.ekf import MEASUREMENTS
+from ...estimators.identify import EKFResult, PassRecord
+from ...estimators.metrics import SimulationScore, mean_fit
+from ...estimators.observers import Callback, RunEnd, RunStart
+from ...estimators.output_error import EpochRecord, OEResult
+from ...models.arm import ArmModel
+from ..artifacts import model_figures, pixels
+from ..config import Config
+from .assessment import evaluate_model
+
+__all__ = [
+    "KeptFigures",
+    "Printer",
+    "ValidationScores",
+    "ProgressLines",
+    "duration",
+    "ekf_scalars",
+    "fit_text",
+    "ensemble_spread",
+    "best_member_loglik",
+]
+
+Printer = Callable[[str], None]
+
+
+# The names of the state entries [q, q̇] a filter measures (`MEASUREMENTS` gives their indices).
+CHANNELS = ("q", "qdot")
+
+
+def ekf_scalars(record: PassRecord, measure: str = "both") -> dict[str, float]:
+    """A pass's filter diagnostics as TensorBoard scalars (`ekf/...`); the innovation RMS per
+    measured channel (`estimator.measure`) by name: ``ekf/innovation_rms/q``, ``…/qdot``."""
+    scalars = {
+        "ekf/trace_P": record.trace_P,
+        "ekf/trace_P_theta": record.trace_P_theta,
+        "ekf/nis": record.nis,
+        "ekf/loglik": record.loglik,
+        "ekf/rel_change": record.rel_change,
+    }
+    channels = [CHANNELS[i] for i in MEASUREMENTS[measure]]
+    for name, v in zip(channels, record.innovation_rms, strict=True):
+        scalars[f"ekf/innovation_rms/{name}"] = v
+    return scalars
+
+
+def duration(seconds: float) -> str:
+    """A progress line's time: ``26 ms`` under a second (a pass often is), else ``3.4 s``."""
+    return f"{seconds * 1e3:.0f} ms" if seconds < 1.0 else f"{seconds:.1f} s"
+
+
+def fit_text(fits: dict[str, dict[str, float]]) -> str:
+    """Validation FITs for a progress line: ``name FIT q 91.2 % q̇ 80.1 %, ...``."""
+    return ", ".join(
+        f"{n} FIT q {f['fit_q']:.1f} % q̇ {f['fit_qdot']:.1f} %" for n, f in fits.items()
+    )
+
+
+def ensemble_spread(model: ArmModel, state: dict[str, Any]) -> tuple[dict[str, int], list[float]]:
+    """An ensemble pass's member count by status, and its live members' inertias, sorted."""
+    status = state["status"]
+    ok = [i for i, s in enumerate(status) if s != "diverged"]
+    inertia = sorted(float(model.split(state["thetas"][i])[1]["inertia"]) for i in ok)
+    counts = {s: status.count(s) for s in sorted(set(status))}
+    return counts, inertia
+
+
+class ValidationScores(Callback):
+    """Scores the model on the validation records after each filter pass (`latest`)."""
+
+    def __init__(self, cfg: Config, validation: list[Experiment]) -> None:
+        self.cfg, self.validation = cfg, validation
+        self.latest: dict[str, SimulationScore] = {}
+        # (pass, score, scores) of the best-scored pass so far, ties to the later (as
+        # `keep_best` chooses): the run's final scores when it keeps that pass
+        self.best: tuple[int, float, dict[str, SimulationScore]] | None = None
+
+    def update(self, model: ArmModel) -> dict[str, SimulationScore]:
+        """Score `model`, keep the scores as `latest` and return them."""
+        self.latest = evaluate_model(model, self.validation, self.cfg)
+        return self.latest
+
+    @property
+    def fits(self) -> dict[str, dict[str, float]]:
+        """The latest scores as plain dictionaries (FIT and RMS on q and q̇), by record."""
+        return {name: score.to_dict() for name, score in self.latest.items()}
+
+    def on_run_start(self, start: RunStart) -> None:
+        if not start.resumed:  # pass 0's scores, which the start's log and line show
+            self.update(start.model)
+
+    def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
+        self.update(result.model)
+        # the pass's score goes into its record (and so into the snapshots): the run keeps the
+        # pass that validates best (`torchfric.app.run.outcome.keep_best`)
+        if not record.rolled_back:
+            record.val_score = score = mean_fit(self.fits)
+            if score is not None and (self.best is None or score >= self.best[1]):
+                self.best = (record.index, score, self.latest)
+        return None
+
+    def scores_at(self, index: int | None) -> dict[str, SimulationScore] | None:
+        """The validation scores of pass `index` when it is the best-scored pass (the one a
+        run keeps), else None."""
+        return self.best[2] if self.best is not None and self.best[0] == index else None
+
+
+class KeptFigures:
+    """Draws a model's figures to pixels (`draw`); the kept model's once per run (`kept`)."""
+
+    def __init__(self, cfg: Config, validation: Sequence[Experiment], v_max: float) -> None:
+        self.cfg, self.validation, self.v_max = cfg, list(validation), v_max
+        self._kept: tuple[RunEnd, dict[str, Any]] | None = None
+
+    def draw(
+        self,
+        step: int,
+        model: ArmModel,
+        P_theta: Any,
+        scores: Mapping[str, SimulationScore],
+    ) -> dict[str, Any]:
+        """`model`'s figures (`model_figures`) at `step`, drawn to pixels, by tag."""
+        figs = model_figures(
+            model, self.v_max, f"pass {step}", self.cfg.data.position_unit, P_theta,
+            self.validation, dict(scores),
+        )  # fmt: skip
+        return {tag: pixels(fig) for tag, fig in figs.items()}
+
+    def kept(self, end: RunEnd) -> dict[str, Any]:
+        """The kept model's figures (`draw`), drawn at the first call for `end`."""
+        if self._kept is None or self._kept[0] is not end:
+            self._kept = (end, self.draw(end.step, end.model, end.covariance, end.scores))
+        return self._kept[1]
+
+
+class ProgressLines(Callback):
+    """The run's progress on stderr: one line after each pass, ensemble pass or validated epoch
+    (through `say`), and, when `bars` is a stream (a terminal), tqdm progress bars: passes or
+    epochs with their rate and ETA, and the samples within a pass. Without bars the samples
+    within a pass are ``\\r`` lines that only a terminal shows."""
+
+    def __init__(
+        self,
+        cfg: Config,
+        say: Printer,
+        scores: ValidationScores,
+        model: ArmModel,
+        bars: TextIO | None = None,
+    ):
+        self.cfg, self.say, self.scores = cfg, say, scores
+        self.model = model  # the starting model: it splits an ensemble's θ into parameters
+        self.t_pass = time.perf_counter()
+        self.bars = bars
+        self._outer: Any = None  # passes or epochs
+        self._inner: Any = None  # samples of the running pass
+
+    # -- bars ----------------------------------------------------------------------------------
+    def _bar(self, **kwargs: Any) -> Any:
+        from tqdm import tqdm
+
+        return tqdm(file=self.bars, dynamic_ncols=True, mininterval=0.2, **kwargs)
+
+    def _advance(self, index: int, unit: str, total: int, postfix: str) -> None:
+        """Move the passes (or epochs) bar to `index` of `total` and show `postfix`."""
+        if self.bars is None:
+            return
+        if self._inner is not None:
+            self._inner.close()
+            self._inner = None
+        self._open(index, unit, total)
+        self._outer.set_postfix_str(postfix, refresh=False)
+        self._outer.update(index - self._outer.n)
+        self._outer.refresh()  # once per pass: the last pass shows even when it was quick
+
+    def _open(self, index: int, unit: str, total: int) -> None:
+        """The passes (or epochs) bar, opened at the first report of `index` (so that a
+        resumed run starts where it left off)."""
+        if self._outer is None:
+            self._outer = self._bar(
+                total=total, initial=index - 1, desc=f"{unit}es" if unit == "pass" else f"{unit}s",
+                unit=unit, leave=False,
+            )  # fmt: skip
+
+    def close(self) -> None:
+        """Close the bars (the per-pass lines stay on the screen)."""
+        for bar in (self._inner, self._outer):
+            if bar is not None:
+                bar.close()
+        self._inner = self._outer = None
+
+    # -- callbacks ----------------------------------------------------------------------------
+    def on_run_start(self, start: RunStart) -> None:
+        if start.resumed:
+            return
+        text = fit_text(self.scores.fits)
+        self.say(
+            f"  pass 0 ({start.init}): inertia {float(start.model.inertia.detach()):.6g}"
+            + (f", {text}" if text else "")
+        )
+
+    def on_run_end(self, end: RunEnd) -> None:
+        self.close()
+
+    def on_exception(self, error: BaseException) -> None:
+        self.close()
+
+    def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
+        if self.bars is not None:
+            self._open(pass_index, "pass", self.cfg.estimator.passes)
+            if self._inner is None:
+                self._inner = self._bar(
+                    total=samples_total, desc=f"pass {pass_index}", unit="sample",
+                    unit_scale=True, leave=False,
+                )  # fmt: skip
+            self._inner.update(samples_done - self._inner.n)
+            return
+        rate = samples_done / max(time.perf_counter() - self.t_pass, 1e-9)
+        self.say(
+            f"\r  pass {pass_index}/{self.cfg.estimator.passes}: {samples_done}/{samples_total} samples, {rate:,.0f} samples/s"
+        )
+
+    def on_pass_end(self, record: PassRecord, result: EKFResult) -> bool | None:
+        text = fit_text(self.scores.fits)
+        if record.rolled_back:
+            self.say(
+                f"\r  pass {record.index} lowered the innovation log-likelihood "
+                f"({record.loglik:.6g}): undone, keeping pass {record.index - 1}; stopping\n"
+            )
+        self._advance(
+            record.index, "pass", self.cfg.estimator.passes,
+            f"inertia {record.parameters['inertia']:.5g}, Δθ {record.rel_change:.1e}",
+        )  # fmt: skip
+        self.say(
+            f"\r  pass {record.index}/{self.cfg.estimator.passes} done in {duration(record.seconds)} "
+            f"({record.samples / max(record.seconds, 1e-9):,.0f} samples/s): "
+            f"inertia {record.parameters['inertia']:.6g}, Δθ {record.rel_change:.2e}"
+            + (f", {text}" if text else "")
+            + "\n"
+        )
+        self.t_pass = time.perf_counter()
+        return None
+
+    def on_ensemble_pass_end(self, pass_index: int, state: dict[str, Any]) -> bool | None:
+        counts, inertia = ensemble_spread(self.model, state)
+        spread = f"inertia {inertia[0]:.5g} … {inertia[-1]:.5g}" if inertia else "no member left"
+        members = ", ".join(f"{c} {s}" for s, c in counts.items())
+        self._advance(pass_index, "pass", self.cfg.estimator.passes, f"members: {members}")
+        self.say(
+            f"\r  pass {pass_index}/{self.cfg.estimator.passes} of {len(state['status'])} members "
+            f"done in {duration(time.perf_counter() - self.t_pass)}: {members}; {spread}\n"
+        )
+        self.t_pass = time.perf_counter()
+        return None
+
+    def on_epoch_end(self, record: EpochRecord, result: OEResult) -> bool | None:
+        total = self.cfg.estimator.epochs + (1 if self.cfg.estimator.lbfgs_steps else 0)
+        self._advance(
+            record.index, "epoch", max(total, record.index),
+            f"loss {record.loss:.3g}, best epoch {result.best_epoch}",
+        )  # fmt: skip
+        if record.val_fit is not None:
+            text = fit_text(record.val_fit)
+            self.say(
+                f"  epoch {record.index}/{self.cfg.estimator.epochs}: loss {record.loss:.4g}, "
+                f"inertia {record.parameters['inertia']:.6g}" + (f", {text}" if text else "") + "\n"
+            )
+        return None
+
+
+def best_member_loglik(state: dict[str, Any], pass_index: int) -> float | None:
+    """The best innovation log-likelihood of an ensemble's members that ran pass `pass_index`
+    (`EnsembleCallback.on_ensemble_pass_end`'s `state`); None when none did."""
+    lls = [h[-1]["loglik"] for h in state["histories"] if h and h[-1]["index"] == pass_index]
+    return max(lls) if lls else None

@@ -1,0 +1,282 @@
+"""A run's outcome as a user reads it: the pass it keeps, its parameters ± σ, and the summary.
+
+- `keep_best`: the final model of an EKF run is its pass with the best validation score
+  (`torchfric.estimators.metrics.mean_fit`: the mean over the validation records of
+  (FIT_q + FIT_q̇)/2), or with the highest innovation log-likelihood when there is no validation
+  data. Passes that were rolled back never count. The filter's own θ after the last pass can be
+  worse on held-out data than an earlier pass's (91.2 % → 85.6 % was seen on the rig), and the
+  user gets the one that validated best. (Output error keeps its best epoch itself.)
+- `parameter_table`: ``{name: {"value", "std"}}`` in physical units from the kept ``P_θθ``
+  (std None where there is no covariance, as after output error).
+- `summary_lines`: the human summary ``train`` prints on stdout.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ...data import Experiment
+from ...estimators.metrics import mean_fit
+from ...estimators.passes import EKFResult, PassRecord
+from ...estimators.selection import select_by_fit
+from ...estimators.uncertainty import parameter_std
+from ...models.arm import ArmModel
+from .autosize import size_lines
+from .snapshots import ekf_payload
+
+__all__ = [
+    "keep_best",
+    "kept_pass",
+    "kept_payload",
+    "parameter_lines",
+    "parameter_table",
+    "score_passes",
+    "summary_lines",
+]
+
+
+@torch.no_grad()
+def score_passes(
+    model: ArmModel,
+    history: Sequence[PassRecord],
+    validation: Sequence[Experiment],
+    *,
+    max_substeps: int = 64,
+    engine: str = "odeint",
+) -> None:
+    """Set `PassRecord.val_score` of the records not scored yet, in one batched open-loop
+    simulation per validation record (the ensemble's kept member; a resumed run's older
+    passes). A simulation that fails scores −inf."""
+    todo = [r for r in history if r.val_score is None and not r.rolled_back]
+    if not todo or not validation:
+        return
+    thetas = torch.tensor([r.theta for r in todo], dtype=torch.float64)
+    alive = list(range(len(todo)))
+    # the ensemble's own scorer, on the validation records alone; its fits, not its scores (it
+    # falls back to the likelihood when nothing simulates, and a failed pass scores −inf here)
+    _, fits, _ = select_by_fit(
+        model, thetas, alive, (), validation, torch.zeros(len(todo)),
+        max_substeps=max_substeps, engine=engine,
+    )  # fmt: skip
+    for record, fit in zip(todo, fits, strict=True):
+        score = mean_fit(fit)
+        record.val_score = score if score is not None and math.isfinite(score) else -math.inf
+
+
+def _candidates(result: EKFResult) -> list[tuple[PassRecord, Tensor, Tensor]]:
+    """The passes that may be kept, each with its θ and ``P_θθ``: every pass not rolled back
+    whose covariance is known (a record from before covariances were kept: only the last)."""
+    out = []
+    last = next((r for r in reversed(result.history) if not r.rolled_back), None)
+    for r in result.history:
+        if r.rolled_back:
+            continue
+        if r is last:
+            out.append((r, result.theta, result.P_theta))
+        elif r.P_theta is not None:
+            theta = torch.tensor(r.theta, dtype=torch.float64)
+            out.append((r, theta, torch.tensor(r.P_theta, dtype=torch.float64)))
+    return out
+
+
+def keep_best(result: EKFResult, *, validating: bool) -> tuple[EKFResult, int]:
+    """The pass of `result` to keep and its number (0: no pass completed).
+
+    By validation score when `validating` (records need `val_score`: `score_passes`), else by
+    log-likelihood; ties go to the later pass. The returned result has that pass's θ, ``P_θθ``
+    and a fitted copy of the model; its history and `converged` are the run's.
+    """
+    cands = _candidates(result)
+    if not cands:
+        return result, 0
+
+    def key(c: tuple[PassRecord, Tensor, Tensor]) -> tuple[float, int]:
+        r = c[0]
+        score = r.val_score if validating else r.loglik
+        if score is None or not math.isfinite(score):
+            score = -math.inf
+        return score, r.index
+
+    record, theta, P_theta = max(cands, key=key)
+    if record is cands[-1][0]:
+        return result, record.index
+    model = copy.deepcopy(result.model).set_theta(theta)
+    return EKFResult(model, theta.clone(), P_theta.clone(), result.history, result.converged), (
+        record.index
+    )
+
+
+def kept_pass(
+    result: EKFResult,
+    validation: Sequence[Experiment],
+    engine: str = "odeint",
+    tolerance: float | None = None,
+) -> tuple[EKFResult, dict[str, Any]]:
+    """The pass of an EKF run to keep (`keep_best`, after `score_passes` with `engine`) and
+    the metrics that say which, and why the passes ended ("stopped": converged, rolled_back
+    or budget)."""
+    score_passes(result.model, result.history, validation, engine=engine)
+    kept, best = keep_best(result, validating=bool(validation))
+    last = result.history[-1] if result.history else None
+    if last is not None and last.rolled_back:  # converged too: the pass before is the best
+        stopped = "rolled_back"
+    elif result.converged:
+        stopped = "converged"
+    else:
+        stopped = "budget"
+    return kept, {
+        "passes": result.passes,
+        "best_pass": best,
+        "converged": result.converged,
+        "stopped": stopped,
+        # ‖Δθ‖/‖θ‖ of the last pass, and its gain of innovation log-likelihood over the pass
+        # before (what estimator.tolerance judges)
+        "last_change": last.rel_change if last is not None else None,
+        "last_gain": _last_gain(result.history),
+        "tolerance": tolerance,
+    }
+
+
+def _last_gain(history: Sequence[PassRecord]) -> float | None:
+    """The last pass's log-likelihood minus that of the pass before it (None for one pass)."""
+    if len(history) < 2:
+        return None
+    before = [r for r in history[:-1] if not r.rolled_back]
+    return history[-1].loglik - before[-1].loglik if before else None
+
+
+def kept_payload(kept: EKFResult, extra: dict[str, Any]) -> dict[str, Any]:
+    """The final checkpoint's estimator state: the kept pass's θ and ``P_θθ``, the run's
+    history (`kept` carries it whole), and which pass was kept."""
+    payload = ekf_payload(kept, kept.passes)
+    payload["best_pass"] = extra["best_pass"]
+    return payload
+
+
+def parameter_table(model: ArmModel, P_theta: Tensor | None) -> dict[str, dict[str, float | None]]:
+    """``{name: {"value": physical value, "std": its σ or None}}`` for every entry of θ."""
+    values = model.physical_parameters()
+    std: dict[str, float] = {}
+    if P_theta is not None:
+        P = torch.as_tensor(P_theta, dtype=torch.float64)
+        if P.shape == (model.num_parameters,) * 2 and bool(torch.isfinite(P).all()):
+            std = parameter_std(model, P)
+    # a σ of exactly 0 is a parameter the data say nothing about (its information is 0 and
+    # the pseudo-inverse left it out): no σ, not perfect certainty (identifiability names it)
+    return {n: {"value": v, "std": std.get(n) or None} for n, v in values.items()}
+
+
+def _value_pm(value: float, std: float | None) -> str:
+    if std is None:
+        return f"{value:.6g}"
+    return f"{value:.6g} ± {std:.2g}"
+
+
+def parameter_lines(table: dict[str, Any], limit: int = 12) -> list[str]:
+    """The parameter table as aligned ``name  value ± σ`` lines (at most `limit` rows, the
+    physical ones first: inertia, viscous, offset, c_m; then the friction model's entries)."""
+    first = [n for n in ("inertia", "viscous", "offset", "c_m") if n in table]
+    names = first + [n for n in table if n not in first]
+    width = max(len(n) for n in names)
+    lines = [f"  {n:<{width}}  {_value_pm(table[n]['value'], table[n]['std'])}" for n in names]
+    if len(lines) > limit:
+        rest = len(lines) - limit
+        lines = lines[:limit] + [f"  … {rest} more in metrics.json and report.html"]
+    return lines
+
+
+_STOPPED = {
+    "converged": "converged in {total} {units}: the last raised the innovation log-likelihood "
+    "by {gain} nats (below estimator.tolerance {tolerance} × the parameters)",
+    "early": "converged: the validation score stopped improving (estimator.patience)",
+    "rolled_back": "converged in {total} {units}: the last lowered the innovation likelihood "
+    "and was undone, so the pass before is the filter's best fit of the data",
+    "budget": "NOT converged: the last of all {total} {units} still raised the innovation "
+    "log-likelihood by {gain} nats (estimator.tolerance {tolerance} × the parameters); raise "
+    "estimator.passes; the kept pass is the one that {kept_by}",
+    "budget_oe": "NOT converged: the validation score was still improving at the last of the "
+    "{total} epochs; run more, e.g. --set estimator.epochs={more}",
+    "budget_oe_early_best": "NOT converged: all {total} epochs ran before estimator.patience "
+    "ran out, and none validated better than epoch {best}; the result is that epoch's",
+}
+
+
+def _g(x: float | None) -> str:
+    return "?" if x is None else f"{x:.2g}"
+
+
+def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
+    """The human summary of a finished run: what was kept and why, parameters ± σ, validation
+    FITs, convergence, warnings, and the files written (`files`: label → path)."""
+    lines = []
+    est = metrics.get("estimator", "")
+    total = metrics.get("passes", metrics.get("epochs"))
+    unit = "epoch" if "epochs" in metrics else "pass"
+    best = metrics.get("best_pass")
+    lines.append(f"torchfric: {metrics.get('name', '')} ({est}) in {metrics['seconds']:.1f} s")
+    ens = metrics.get("ensemble")
+    if ens:
+        words = {"running": "ran every pass", "rolled_back": "stopped at a worse pass"}
+        status = ", ".join(f"{c} {words.get(s, s)}" for s, c in ens["status"].items())
+        lines.append(
+            f"ensemble of {ens['members']} filters ({status}); kept member {ens['best']} "
+            f"(Q ×{ens['best_q_scale']:g}, R ×{ens['best_r_scale']:g}) by "
+            f"{ens['selected_by'].replace('_', ' ')}, after its {total} passes"
+        )
+    if metrics.get("sizes"):
+        lines += size_lines(metrics["sizes"])
+    if best is not None and total:
+        why = (
+            "best validation FIT"
+            if metrics.get("validation")
+            else "the last: no validation data"
+            if unit == "epoch"
+            else "highest likelihood"
+        )
+        lines.append(f"kept {unit} {best} of {total} ({why})")
+    reason = metrics.get("stopped", "")
+    if (unit, reason) == ("epoch", "budget"):
+        reason = "budget_oe" if best is None or best >= (total or 0) else "budget_oe_early_best"
+    stopped = _STOPPED.get(reason, "")
+    if stopped:
+        units = unit + ("es" if unit == "pass" else "s")
+        lines.append(
+            stopped.format(
+                unit=unit,
+                total=total,
+                units=units,
+                more=2 * (total or 1),
+                best=best,
+                change=_g(metrics.get("last_change")),
+                gain=_g(metrics.get("last_gain")),
+                tolerance=_g(metrics.get("tolerance")),
+                kept_by="validated best" if metrics.get("validation") else "fit the data best",
+            )  # fmt: skip
+        )
+    table = metrics["parameters"]
+    if any(v["std"] is not None for v in table.values()):
+        lines.append("parameters (value ± σ):")
+    else:
+        lines.append("parameters (no σ: output error keeps no parameter covariance):")
+    lines += parameter_lines(table)
+    for group in ("validation", "test", "identification"):
+        for name, m in metrics.get(group, {}).items():
+            lines.append(f"{group} FIT ({name}): q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+    if not metrics.get("validation"):
+        lines.append(
+            "validation: none (the identification FIT above flatters the model; add held-out "
+            "records as data.validation)"
+        )
+    for w in metrics.get("warnings", []):
+        lines.append(f"warning: {w}")
+    notes = (metrics.get("identifiability") or {}).get("messages", [])
+    lines += [f"note: {m}" for m in notes if m.startswith("(within")]
+    width = max(len(k) for k in files)
+    lines += [f"{k:<{width}}  {v}" for k, v in files.items()]
+    return lines
