@@ -4,6 +4,7 @@ events.json, final.pt, the figure, TensorBoard), ``--follow`` on a growing file,
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import subprocess
@@ -17,7 +18,9 @@ import torch
 import torchfric.accel  # noqa: F401  (the compiled step)
 from torchfric.app.artifacts.checkpoint import checkpoint_config, checkpoint_model, read_checkpoint
 from torchfric.app.cli import main
+from torchfric.data.axis import LINEAR_AXIS, axis_record
 from torchfric.data.rig import RigParameters, changing_record, excitation, simulate_rig
+from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import EKFState, make_propagator, make_step, run_pass
 from torchfric.estimators.tracking import NisDetector, Tracker, TrackSettings, cusum_threshold
 
@@ -92,6 +95,22 @@ def test_detector_calibrates_holds_off_and_finds_a_shift() -> None:
     t = np.arange(30000) * 1e-3
     found = det.feed(nis[:1234], t[:1234]) + det.feed(nis[1234:], t[1234:])
     assert len(found) == 1 and 20.0 < found[0] < 20.5
+
+
+def test_an_axis_record_can_change_its_friction_mid_run() -> None:
+    """`axis_record(..., change=(t, after))`: the same samples as the unchanged record up to the
+    change, the state carried across it (no jump in q or q̇), the motion different after it."""
+    after = dataclasses.replace(LINEAR_AXIS, coulomb=1.4 * LINEAR_AXIS.coulomb)
+    same = axis_record(LINEAR_AXIS, seed=3, duration=2.0, kind="validation")
+    rec = axis_record(LINEAR_AXIS, seed=3, duration=2.0, kind="validation", change=(1.0, after))
+    k = round(float(rec["change"]) / LINEAR_AXIS.dt)
+    assert float(rec["change"]) == pytest.approx(1.0)
+    for key in ("u", "q", "q_true", "qdot_true"):
+        np.testing.assert_array_equal(rec[key][: k + 1], same[key][: k + 1])
+    assert np.abs(np.diff(rec["qdot_true"][k - 2 : k + 3])).max() < 1e-2  # no jump: m/s per ms
+    assert np.abs(rec["q_true"][-1] - same["q_true"][-1]) > 10 * LINEAR_AXIS.quantum
+    with pytest.raises(TorchfricError, match="outside the record"):
+        axis_record(LINEAR_AXIS, seed=3, duration=2.0, change=(5.0, after))
 
 
 # ------------------------------------------------------------------------------- the command

@@ -190,11 +190,14 @@ def _stepper(p: AxisParameters) -> Callable[[tuple[float, ...], float], tuple[fl
 
 
 def _run(p: AxisParameters, u: np.ndarray | None, ref: tuple[np.ndarray, np.ndarray] | None,
-         n: int, seed: Seed) -> tuple[np.ndarray, ...]:  # fmt: skip
+         n: int, seed: Seed, change: tuple[int, AxisParameters] | None = None
+         ) -> tuple[np.ndarray, ...]:  # fmt: skip
     """Simulate n samples open loop (u) or in the position loop (ref = (v_ref, a_ref)).
     Returns the applied u, measured q, true q, true q̇. A LuGre axis's trajectory is the response
     to the applied u in one run of the rig's integrator (restarting it every sample, as the loop
-    must, drops its sub-step extrapolation: tens of counts off over 30 s instead of < 0.1)."""
+    must, drops its sub-step extrapolation: tens of counts off over 30 s instead of < 0.1).
+    `change` = (k, after): from sample k on the machine is `after` (Stribeck only; the state
+    carries over, the position loop keeps `p`'s feed-forward)."""
     seeds = [int(s) for s in ((seed,) if np.ndim(seed) == 0 else seed)]
     if any(s < 0 for s in seeds):
         raise TorchfricError(f"seed must be integers >= 0, got {seed!r}")
@@ -206,7 +209,7 @@ def _run(p: AxisParameters, u: np.ndarray | None, ref: tuple[np.ndarray, np.ndar
             dist[k] = a * dist[k - 1] + math.sqrt(1 - a * a) * dist[k]
     dist = dist * p.disturbance_std
     noise = rng.standard_normal(n) * p.noise_std
-    step = _stepper(p)
+    step, after = _stepper(p), (_stepper(change[1]) if change is not None else None)
     x: tuple[float, ...] = (0.0, 0.0, 0.0) if p.friction == "lugre" else (0.0, 0.0)
     ua, qm, qt, vt = (np.zeros(n) for _ in range(4))
     if ref is not None:
@@ -228,6 +231,8 @@ def _run(p: AxisParameters, u: np.ndarray | None, ref: tuple[np.ndarray, np.ndar
                 v_hat = alpha * v_hat + (1 - alpha) * (qm[k] - qm[k - 1]) / p.dt
             uk = u_ff[k] + kp * (q_ref[k] - qm[k]) + kd * (v_ref[k] - v_hat)
             ua[k] = min(max(uk, -u_lim), u_lim)
+        if change is not None and k == change[0]:
+            step = after  # type: ignore[assignment]
         if k + 1 < n:
             x = step(x, p.c_m * ua[k] + dist[k] - p.offset)
     if p.friction == "lugre":
@@ -306,14 +311,32 @@ def excitation_reference(p: AxisParameters, *, seed: int, duration: float = 30.0
 
 
 def axis_record(p: AxisParameters, *, seed: int, duration: float = 30.0,
-                kind: str = "identification") -> dict[str, np.ndarray]:  # fmt: skip
+                kind: str = "identification", change: tuple[float, AxisParameters] | None = None
+                ) -> dict[str, np.ndarray]:  # fmt: skip
     """One record of the axis in its position loop (module docstring): ``t, u`` (applied), ``q``
     (measured), ``q_true, qdot_true``. Excitation and noise are drawn from ``(seed, kind)``;
-    ``simulate_axis(p, rec["u"], seed=[seed, code])`` replays it open loop exactly."""
+    ``simulate_axis(p, rec["u"], seed=[seed, code])`` replays it open loop exactly.
+
+    ``change = (t_c, after)``: the machine becomes `after` (a Stribeck axis with the same ``dt``,
+    e.g. ``dataclasses.replace(p, coulomb=1.4 * p.coulomb)``) from the first sample at or after
+    ``t_c`` on, its state carried across (the machine is not stopped; the position loop, tuned
+    to `p`, does not know). The record then holds ``change``, that sample's time (a 0-d array);
+    the open-loop replay does not cover it."""
     ref = excitation_reference(p, seed=seed, duration=duration, kind=kind)
     n = ref[0].size
-    u, qm, qt, vt = _run(p, None, ref, n, [int(seed), _KIND_CODE[kind]])
-    return {"t": np.arange(n) * p.dt, "u": u, "q": qm, "q_true": qt, "qdot_true": vt}
+    at = None
+    if change is not None:
+        t_c, later = change
+        if p.friction != "stribeck" or later.friction != "stribeck" or later.dt != p.dt:
+            raise TorchfricError("axis_record's change needs two Stribeck axes with the same dt")
+        if not 0 < t_c < (n - 1) * p.dt:
+            raise TorchfricError(f"change at t = {t_c!r} s is outside the record (0, {n * p.dt} s)")
+        at = (math.ceil(t_c / p.dt - 1e-9), later)
+    u, qm, qt, vt = _run(p, None, ref, n, [int(seed), _KIND_CODE[kind]], at)
+    out = {"t": np.arange(n) * p.dt, "u": u, "q": qm, "q_true": qt, "qdot_true": vt}
+    if at is not None:
+        out["change"] = np.asarray(at[0] * p.dt)
+    return out
 
 
 def write_csv(path: str | os.PathLike[str], record: dict[str, np.ndarray], *,
