@@ -29,7 +29,7 @@ from torchfric.app.config import (
 )
 from torchfric.app.config.toml_io import toml_value
 from torchfric.data.rig import EXPERIMENTS
-from torchfric.data.units import COLUMN_NAMES, POSITION_UNITS
+from torchfric.data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS
 from torchfric.errors import TorchfricError
 from torchfric.estimators.ekf import MEASUREMENTS
 from torchfric.estimators.settings import TUNING_UNITS
@@ -166,6 +166,7 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
         "simulation.method": set(SOLVERS),
         "data.velocity": set(VELOCITY_SOURCES),
         "data.position_unit": set(POSITION_UNITS),
+        "data.time_unit": set(TIME_UNITS),
         "estimator.method": set(ESTIMATORS),
         "estimator.measure": set(MEASUREMENTS),
         "model.init": set(INIT_KEYWORDS),
@@ -186,7 +187,8 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
 def test_listed_choices_load_and_others_are_refused(entries: dict) -> None:
     for key in ("model.friction", "simulation.method", "data.velocity", "data.position_unit"):
         for choice in _choices(entries[key]["allowed"]):
-            Config.loads("", [f"{key}={choice}"])
+            counts = ["data.counts_per_rev=4096"] if choice == "counts" else []  # its resolution
+            Config.loads("", [f"{key}={choice}", *counts])
         with pytest.raises(TorchfricError, match="not allowed; choose one of"):
             Config.loads("", [f"{key}=nonesuch"])
     for choice in _choices(entries["estimator.measure"]["allowed"]):
@@ -484,7 +486,7 @@ def test_data_and_estimator_errors_name_the_key_that_fixes_them(tmp_path: pathli
     gap.write_text("t,u,q\n" + "".join(f"{x!r},0,0\n" for x in t.tolist()), encoding="utf-8")
     with pytest.raises(
         TorchfricError,
-        match=r"split it at the gap into separate files \(data\.train takes a list\)",
+        match=r"gap\.csv: .*t skips samples after line 11 \(5 samples\)",
     ):
         load_experiment(gap)
     with pytest.raises(

@@ -81,7 +81,7 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     _csv(user / "rec.csv", record, ("time", "current", "position"))
     assert main(["init", "rec.csv", "--c-m", "16"]) == 0
     out = capsys.readouterr().out
-    assert "4000 samples, dt 0.001 s (1000 Hz" in out
+    assert "4000 samples, 3.999 s, dt 0.001 s (1000 Hz" in out
     assert "wrote       " + str(user / "rec.toml") in out
     cfg = Config.load(user / "rec.toml")
     assert cfg.name == "rec" and cfg.model.c_m == C_M
@@ -188,7 +188,6 @@ def test_column_flag_and_time_step_for_a_file_without_names_or_time(user, record
         (("t", "pos", "position"), ["column is u (input): none does; q (position): pos and "
                                     'position all look like it', 'columns = { t = "t", u = '
                                     '"NAME", q = "NAME" }']),
-        (("time [ms]", "u", "q"), ["is in ms; torchfric reads t in seconds"]),
     ],
 )  # fmt: skip
 def test_init_refuses_a_header_it_cannot_map(user, record, capsys, header, expected) -> None:  # type: ignore[no-untyped-def]
@@ -202,16 +201,21 @@ def test_init_refuses_a_header_it_cannot_map(user, record, capsys, header, expec
 def test_init_refuses_bad_data_and_arguments_and_writes_nothing(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
     rec = dict(record)
     t = rec["t"].copy()
-    t[2000:] += 0.001  # one sample missing
+    t[2000:] += 0.0002  # a step of 1.2 samples: no gap (those cut: test_lab_records), no record
     _csv(user / "gap.csv", {**rec, "t": t})
     q = rec["q"].copy()
-    q[1234] = np.nan
+    q[100:] = np.nan  # nothing but NaN after a run too short (line 2 is the first sample)
     _csv(user / "nan.csv", {**rec, "q": q})
     _csv(user / "rec.csv", rec)
     (user / "taken.toml").write_text("# mine\n")
     before = _files(user)
-    _fails(capsys, ["init", "gap.csv", "--c-m", "16"], "sampling is not uniform at index 2000")
-    _fails(capsys, ["init", "nan.csv", "--c-m", "16"], "non-finite value nan at index 1234")
+    _fails(capsys, ["init", "gap.csv", "--c-m", "16"], "sampling is not uniform at line 2002")
+    _fails(
+        capsys,
+        ["init", "nan.csv", "--c-m", "16"],
+        "empty or NaN at lines 102–4001",
+        "no run of 200",
+    )
     _fails(capsys, ["init", "rec.csv"], "--c-m is required", "not estimate it")
     _fails(capsys, ["init", "rec.csv", "--c-m", "abc"], "--c-m abc: expected a positive number")
     _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--out", "taken.toml"], "exists", "--force")
@@ -268,12 +272,12 @@ def test_a_validation_record_beside_the_data_is_proposed_by_its_name(user, recor
 def test_units_and_slow_sampling_are_checked(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
     counts = dict(record, q=np.round(record["q"] * 4096 / (2 * np.pi)))
     _csv(user / "counts.csv", counts)
-    assert main(["init", "counts.csv", "--c-m", "16"]) == 0
-    out = capsys.readouterr().out
-    assert (
-        "encoder counts?" in out
-        and "# Note: q holds whole numbers only" in (user / "counts.toml").read_text()
-    )
+    _fails(capsys, ["init", "counts.csv", "--c-m", "16"], "q holds whole numbers only",
+           "encoder counts; rerun with --counts-per-rev N")  # fmt: skip
+    assert main(["init", "counts.csv", "--c-m", "16", "--counts-per-rev", "4096"]) == 0
+    capsys.readouterr()
+    data = Config.load(user / "counts.toml").data
+    assert (data.position_unit, data.counts_per_rev) == ("counts", 4096.0)
     deg = dict(record, q=np.degrees(record["q"]))
     _csv(user / "deg.csv", deg)
     assert main(["init", "deg.csv", "--c-m", "16"]) == 0
@@ -403,7 +407,7 @@ def test_time_in_milliseconds_is_refused_not_filtered_around(  # type: ignore[no
     step = f"{dt * 1000:g} s ({1 / (dt * 1000):g} Hz)"
     _fails(capsys, ["init", "rec.csv", "--c-m", "16"],
            f"the time column 't' steps by {step}, which looks like milliseconds (", why,
-           "convert the column to seconds (t/1000)")  # fmt: skip
+           'name the unit in the header ("t [ms]")')  # fmt: skip
     _fails(capsys, ["init", "bare.csv", "--c-m", "16", "--time-step", f"{dt * 1000:g}"],
            f"--time-step {dt * 1000:g}: a sample time of {step} looks like milliseconds",
            "e.g. --time-step 0.001 for 1 ms samples")  # fmt: skip

@@ -115,7 +115,7 @@ def _add_record_options(p: argparse.ArgumentParser) -> None:
         "--position-unit",
         # torchfric.data.units.POSITION_UNITS (a test keeps them equal): importing it here would
         # import torch for every --help
-        choices=("rad", "deg", "m", "mm"),
+        choices=("rad", "deg", "m", "mm", "counts"),
         default=None,
         help="unit of q in this file (default: the checkpoint's data.position_unit)",
     )
@@ -189,6 +189,18 @@ def _add_init(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="write the first FRACTION of the file and the rest as two new CSV files beside "
         "the config, for identification and validation (e.g. 0.7)",
+    )
+    p.add_argument(
+        "--counts-per-rev",
+        metavar="N",
+        default=None,
+        help="q is in encoder counts, N per revolution (a rotary axis; q becomes rad)",
+    )
+    p.add_argument(
+        "--counts-per-m",
+        metavar="N",
+        default=None,
+        help="q is in encoder counts, N per metre (a linear axis; q becomes m)",
     )
 
 

@@ -12,7 +12,7 @@ resources); the estimators and the app layer import from here, never the other w
 
 from .checks import data_warnings
 from .experiment import Experiment, make_experiment, validate_experiment
-from .readers import load_experiment, save_csv
+from .readers import load_experiment, load_segments, save_csv
 from .velocity import (
     DEFAULT_CUTOFF_HZ,
     VELOCITY_METHODS,
@@ -29,6 +29,7 @@ __all__ = [
     "data_warnings",
     "highpass_derivative",
     "load_experiment",
+    "load_segments",
     "make_experiment",
     "reconstruct_velocity",
     "save_csv",

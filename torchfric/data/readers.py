@@ -8,125 +8,31 @@ arrays (`_READERS`); `_select` picks our columns (t, u, q, qdot) from them, and
 
 from __future__ import annotations
 
+import math
 import os
 import pathlib
-import warnings
 from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
-from ..errors import MissingColumn, TorchfricError, shorten
+from ..errors import MissingColumn, TorchfricError
 from .convert import _check_step, _one_line
 from .experiment import Experiment, _check_shapes, _validate
-from .guards import _MEMORY_FIX, _check_memory, _check_regular_file
-from .units import COLUMN_NAMES
+from .guards import _check_memory, _check_regular_file
+from .lab import nice_period, read_text_table, split_segments, wrap_jumps
+from .units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, position_factor, split_unit
 
-__all__ = ["FILE_TYPES", "load_experiment", "read_columns", "save_csv"]
+__all__ = ["FILE_TYPES", "load_experiment", "load_segments", "read_columns", "save_csv"]
 
 PathLike = str | os.PathLike[str]
 
 
 # --------------------------------------------------------------------------- files
-_HEAD_BYTES = 1 << 16  # the binary-data check looks at the first 64 KiB
-_MAX_LINE = 1 << 20  # no header or comment line is longer than 1 MiB
-_CSV_FIX = (
-    "give a UTF-8 text file with a header line such as t,u,q and one row of numbers per sample"
-)
-
-
-def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
-    """The one-line error for a file that is not UTF-8 text, naming the first bad byte."""
-    byte = exc.object[exc.start : exc.start + 1].hex() if exc.object else "?"
-    return TorchfricError(
-        f"{path}: cannot read the file: byte 0x{byte} is not UTF-8 text (a binary file, or text "
-        "in another encoding such as Latin-1); re-save it as UTF-8 (plain ASCII numbers)"
-    )
-
-
-def _find_header(path: pathlib.Path) -> tuple[int, str] | None:
-    """(index, text) of the first line that is neither blank nor a '#' comment, or None.
-
-    Reads line by line up to that line only (the body is parsed by `np.loadtxt`); lines are
-    split like `np.loadtxt` splits them (universal newlines), so the index is its `skiprows`.
-    """
-    with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
-        for i, line in enumerate(iter(lambda: f.readline(_MAX_LINE), "")):
-            if len(line) >= _MAX_LINE and not line.endswith("\n"):
-                raise TorchfricError(
-                    f"{path}: line {i + 1} is longer than {_MAX_LINE // 1024} KiB; this is not a "
-                    f"CSV with a header line; {_CSV_FIX}"
-                )
-            if line.strip() and not line.lstrip().startswith("#"):
-                return i, line.rstrip("\r\n")
-    return None
-
-
 def _read_csv(path: pathlib.Path) -> dict[str, np.ndarray]:
-    """Header line of names, then comma-separated numbers; '#' starts a comment."""
-    try:
-        with path.open("rb") as f:
-            head = f.read(_HEAD_BYTES)
-        if not head:
-            raise TorchfricError(f"{path}: the file is empty (0 bytes); {_CSV_FIX}")
-        nul = head.find(b"\0")
-        if nul >= 0:
-            raise TorchfricError(
-                f"{path}: cannot read the file as CSV: it holds binary data (a NUL byte at "
-                f"offset {nul}), not text; {_CSV_FIX}"
-            )
-        found = _find_header(path)
-    except UnicodeDecodeError as exc:
-        raise _not_utf8(path, exc) from None
-    except OSError as exc:
-        raise TorchfricError(f"{path}: cannot read the file ({_one_line(exc)})") from None
-    if found is None:
-        raise TorchfricError(
-            f"{path}: no header line; the first line must name columns, e.g. t,u,q"
-        )
-    header_at, header = found
-    names = [s.strip().strip("\"'") for s in header.split("#")[0].split(",")]
-    try:
-        [float(s) for s in names]
-    except ValueError:
-        pass
-    else:
-        raise TorchfricError(
-            f"{path}: the first line holds numbers, not column names; add a header such as t,u,q"
-        )
-    if len(names) == 1 and (";" in names[0] or "\t" in names[0]):
-        sep = "semicolon" if ";" in names[0] else "tab"
-        raise TorchfricError(
-            f"{path}: the header {shorten(names[0])!r} is {sep}-separated; torchfric reads "
-            "comma-separated files, so replace the separators with commas (t,u,q)"
-        )
-    if len(set(names)) != len(names) or "" in names:
-        raise TorchfricError(
-            f"{path}: header {shorten(str(names))} has empty or repeated column names"
-        )
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # numpy warns on an empty body; handled below
-            data = np.loadtxt(
-                path, delimiter=",", comments="#", skiprows=header_at + 1, ndmin=2, encoding="utf-8"
-            )
-    except UnicodeDecodeError as exc:  # a ValueError: before the generic parse error
-        raise _not_utf8(path, exc) from None
-    except ValueError as exc:
-        raise TorchfricError(
-            f"{path}: cannot parse the data ({_one_line(exc)}); expected {len(names)} "
-            "comma-separated numbers per row"
-        ) from None
-    except MemoryError:
-        raise TorchfricError(
-            f"{path}: not enough memory to parse the file; {_MEMORY_FIX}"
-        ) from None
-    if data.size == 0:
-        raise TorchfricError(f"{path}: no data rows below the header; the file holds no samples")
-    if data.shape[1] != len(names):
-        raise TorchfricError(
-            f"{path}: {data.shape[1]} values per row but the header names {len(names)} columns"
-        )
-    return {name: data[:, j] for j, name in enumerate(names)}
+    """A header line of names, then rows of numbers (`torchfric.data.lab.read_text_table`:
+    delimiter and decimal separator sniffed; '#' starts a comment)."""
+    return read_text_table(path)[0]
 
 
 def _read_npz(path: pathlib.Path) -> dict[str, np.ndarray]:
@@ -253,8 +159,9 @@ def _column_mapping(columns: Mapping[str, str] | None) -> dict[str, str]:
     return mapping
 
 
-def _read_table(p: pathlib.Path) -> dict[str, np.ndarray]:
-    """The named arrays of file `p`, read by its suffix's reader after the guards."""
+def _read_table(p: pathlib.Path) -> tuple[dict[str, np.ndarray], Callable[[int], str]]:
+    """The named arrays of file `p`, read by its suffix's reader after the guards, and how
+    messages name row k: its line in a CSV (1-based, the header counted), else its index."""
     if p.suffix.lower() not in _READERS:
         raise TorchfricError(
             f"{p}: unsupported file type {p.suffix!r}; expected one of {sorted(_READERS)}"
@@ -265,14 +172,17 @@ def _read_table(p: pathlib.Path) -> dict[str, np.ndarray]:
             f"{p}: the file is empty (0 bytes); give a file holding the record (t, u, q columns)"
         )
     _check_memory(p, size)
-    return _READERS[p.suffix.lower()](p)
+    if p.suffix.lower() == ".csv":
+        table, _, lines = read_text_table(p)
+        return table, lines.where
+    return _READERS[p.suffix.lower()](p), lambda k: f"index {k}"
 
 
 def read_columns(path: PathLike) -> dict[str, np.ndarray]:
     """Every named array of a .csv, .npz or .mat file, as `load_experiment` reads it, before
     any column is chosen (a CSV's header names → its columns). For ``torchfric init``, which
     maps a file's columns to ours."""
-    return _read_table(pathlib.Path(path))
+    return _read_table(pathlib.Path(path))[0]
 
 
 def _select_columns(
@@ -289,14 +199,10 @@ def _select_columns(
 
 
 def _sample_range(
-    cols: dict[str, np.ndarray],
-    labels: Mapping[str, str],
-    p: pathlib.Path,
-    start: int,
-    stop: int | None,
+    cols: dict[str, np.ndarray], p: pathlib.Path, start: int, stop: int | None
 ) -> dict[str, np.ndarray]:
-    """The samples ``start ≤ k < stop`` of every column, after checking shapes and the range."""
-    n = _check_shapes(cols, labels, str(p))
+    """The samples ``start ≤ k < stop`` of every column (of one length), after checking."""
+    n = next(iter(cols.values())).shape[0]
     end = n if stop is None else stop
     ok = all(isinstance(i, int) and not isinstance(i, bool) for i in (start, end))
     if not ok or not 0 <= start < end <= n:
@@ -308,7 +214,89 @@ def _sample_range(
     return {key: arr[start:end] for key, arr in cols.items()}
 
 
-def load_experiment(
+def _check_units(
+    names: Mapping[str, str], p: pathlib.Path, time_unit: str, position_unit: str | None
+) -> None:
+    """Refuse a unit that a column's header states (``Zeit [ms]``) when another is given."""
+    if time_unit not in TIME_UNITS:
+        raise TorchfricError(f"time_unit = {time_unit!r}; expected one of {list(TIME_UNITS)}")
+    given = {"t": ("time_unit", time_unit), "q": ("position_unit", position_unit)}
+    for key, (setting, unit) in given.items():
+        _, said, explicit = split_unit(names.get(key, ""))
+        if explicit and unit is not None and said != unit:
+            raise TorchfricError(
+                f"{p}: the column {names[key]!r} is in {said} (its header says so) but "
+                f'data.{setting} = "{unit}"; set data.{setting} = "{said}" ({setting}= in '
+                "Python)"
+            )
+
+
+def _scaled_q(
+    q: np.ndarray, unit: str | None, counts_per_rev: float | None, counts_per_m: float | None
+) -> np.ndarray:
+    if unit is None:
+        return q
+    try:
+        return q * position_factor(unit, counts_per_rev, counts_per_m)
+    except (KeyError, ValueError):
+        raise TorchfricError(
+            f"position_unit = {unit!r}: expected one of {list(POSITION_UNITS)}; counts need "
+            "counts_per_rev (a rotary axis) or counts_per_m (a linear one)"
+        ) from None
+
+
+def _unwrap(
+    q: np.ndarray, spans: list[tuple[int, int]], where: Callable[[int], str],
+    period: float | None, p: pathlib.Path,
+) -> np.ndarray:  # fmt: skip
+    """q with each segment unwrapped at `period`; a wrap without a period is refused; an
+    infinite period leaves q as it is (for a caller that looks at the wrap itself)."""
+    if period == math.inf:
+        return q
+    jumps = [j + a for a, b in spans for j in wrap_jumps(q[a:b]).tolist()]
+    if period is None:
+        if jumps:
+            k = jumps[0]
+            guess = nice_period(q[np.isfinite(q)])
+            raise TorchfricError(
+                f"{p}: q wraps: it jumps from {q[k - 1]:.6g} to {q[k]:.6g} at {where(k)} "
+                f"({len(jumps)} such jump(s) of about a period, {guess:g}): a single-turn "
+                f"encoder's count or an angle that wraps; set data.wrap_period = {guess:g} "
+                "(in data.position_unit) to unwrap it, or log the unwrapped position"
+            )
+        return q
+    out = q.copy()
+    for a, b in spans:
+        out[a:b] = np.unwrap(q[a:b], period=period)
+    return out
+
+
+def _experiments(
+    cols: Mapping[str, np.ndarray], spans: list[tuple[int, int]], labels: Mapping[str, str],
+    p: pathlib.Path, name: str | None, rtol: float, start: int,
+) -> list[Experiment]:  # fmt: skip
+    """One checked `Experiment` per span of rows: ``name`` alone, or ``name#1``, ``name#2``."""
+    stem = p.stem if name is None else name
+    exps = []
+    for i, (a, b) in enumerate(spans):
+        part = {key: arr[a:b] for key, arr in cols.items()}
+        _validate(part, where=str(p), labels=labels, rtol=rtol, min_samples=10, offset=start + a)
+        label = stem if len(spans) == 1 else f"{stem}#{i + 1}"
+        # the constructor copies each column into a tensor once
+        exps.append(Experiment(**part, name=label))  # type: ignore[arg-type]
+    return exps
+
+
+def _check_time_step(exp: Experiment, time_step: float, rtol: float, p: pathlib.Path) -> None:
+    step = float(np.median(np.diff(exp.t.numpy())))
+    if abs(step - time_step) > rtol * time_step:
+        raise TorchfricError(
+            f"{p}: the time column has step {step:.9g} s but time_step = {time_step:.9g} s; "
+            "drop time_step (data.time_step in a run config) or correct it"
+        )
+
+
+def load_segments(
     path: PathLike,
     *,
     columns: Mapping[str, str] | None = None,
@@ -317,29 +305,34 @@ def load_experiment(
     rtol: float = 1e-3,
     start: int = 0,
     stop: int | None = None,
-) -> Experiment:
-    """Load and validate one record from a .csv, .npz or .mat file.
+    time_unit: str = "s",
+    position_unit: str | None = None,
+    counts_per_rev: float | None = None,
+    counts_per_m: float | None = None,
+    wrap_period: float | None = None,
+) -> tuple[list[Experiment], list[str]]:
+    """Load one record as its segments (`torchfric.data.lab.split_segments`), with notes of
+    what was left out; rows are named by their line in a CSV (the header counted).
 
-    Args:
-        path: CSV with a header line (columns t, u, q, optional qdot; extra columns ignored;
-            lines starting with '#' skipped), or an .npz (`numpy.load`) / .mat
-            (`scipy.io.loadmat`) file of named arrays; `(N, 1)` and `(1, N)` arrays are flattened.
-        columns: our names (t, u, q, qdot) → names in the file, e.g. ``{"u": "vir", "q": "qm"}``.
-            ``"name:k"`` selects column k of a 2-D array, e.g. ``{"q": "data:2"}``.
-            Unmapped names are looked up as themselves; qdot is loaded when present.
-        name: label of the experiment (default: the file name without suffix).
-        time_step: sample period in s; builds ``t = arange(N)·time_step`` when the file has no
-            time column. If the file has one, its step must agree within `rtol`.
-        rtol: relative tolerance of the uniform-sampling check.
-        start, stop: keep samples ``start ≤ k < stop`` of the file (``t`` not shifted).
+    Args: as `load_experiment`, and
+        time_unit: unit of the file's t (`TIME_UNITS`); a header that states another
+            (``Zeit [ms]``) is refused.
+        position_unit: unit of q (`POSITION_UNITS`), converted to SI (rad or m), with
+            `counts_per_rev` or `counts_per_m` for counts; None keeps q as in the file.
+        wrap_period: q wraps at this period (in the file's unit): each segment is unwrapped.
+            None: a q that wraps (`torchfric.data.lab.wrap_jumps`) is refused; ``math.inf``:
+            q is kept as it is, wrapped or not.
+
+    Segments are named ``name#1``, ``name#2``, … (just `name` when there is one).
     """
     p = pathlib.Path(path)
     mapping = _column_mapping(columns)
-    table = _read_table(p)
+    table, where = _read_table(p)
     cols, labels = _select_columns(table, mapping, set(columns or {}), p)
     if time_step is not None:
         time_step = _check_step(time_step, "time_step")
     t_in_file = "t" in cols
+    _check_units(mapping if t_in_file else {"q": mapping["q"]}, p, time_unit, position_unit)
     if not t_in_file:
         if time_step is None:
             raise MissingColumn(
@@ -350,23 +343,73 @@ def load_experiment(
             )
         cols = {"t": np.arange(cols["q"].shape[0]) * time_step} | cols
         labels["t"] = f"t = arange(N)*{time_step:g}"
-    cols = _sample_range(cols, labels, p, start, stop)
-    _validate(cols, where=str(p), labels=labels, rtol=rtol, min_samples=10, offset=start)
+    else:
+        cols["t"] = cols["t"] * TIME_UNITS[time_unit]
+    _check_shapes(cols, labels, str(p))
+    cols = _sample_range(cols, p, start, stop)
+    shifted = (lambda k: where(k + start)) if start else where
+    found = split_segments(cols, labels, shifted, rtol=rtol, file=str(p))
+    q = _unwrap(cols["q"], found.spans, shifted, wrap_period, p)
+    cols["q"] = _scaled_q(q, position_unit, counts_per_rev, counts_per_m)
+    if "qdot" in cols:
+        cols["qdot"] = _scaled_q(cols["qdot"], position_unit, counts_per_rev, counts_per_m)
+    exps = _experiments(cols, found.spans, labels, p, name, rtol, start)
     if time_step is not None and t_in_file:
-        step = float(np.median(np.diff(cols["t"])))
-        if abs(step - time_step) > rtol * time_step:
-            raise TorchfricError(
-                f"{p}: the time column has step {step:.9g} s but time_step = {time_step:.9g} s; "
-                "drop time_step (data.time_step in a run config) or correct it"
-            )
-    # the constructor copies each column into a tensor once (one copy, not two, at the peak)
-    return Experiment(
-        t=cols["t"],  # type: ignore[arg-type]
-        u=cols["u"],  # type: ignore[arg-type]
-        q=cols["q"],  # type: ignore[arg-type]
-        qdot=cols.get("qdot"),  # type: ignore[arg-type]
-        name=p.stem if name is None else name,
-    )
+        _check_time_step(exps[0], time_step, rtol, p)
+    notes = []
+    if found.notes:
+        kept = sum(b - a for a, b in found.spans)
+        names = ", ".join(e.name for e in exps[:3]) + (" …" if len(exps) > 3 else "")
+        notes.append(
+            f"{p.name}: {'; '.join(found.notes)}: read as {len(exps)} segment(s) of {kept} "
+            f"samples in all ({names}), each starting its own state, θ shared"
+        )
+    return exps, notes
+
+
+def load_experiment(
+    path: PathLike,
+    *,
+    columns: Mapping[str, str] | None = None,
+    name: str | None = None,
+    time_step: float | None = None,
+    rtol: float = 1e-3,
+    start: int = 0,
+    stop: int | None = None,
+    **units: Any,
+) -> Experiment:
+    """Load and validate one record from a .csv, .npz or .mat file.
+
+    Args:
+        path: CSV with a header line (columns t, u, q, optional qdot; extra columns ignored;
+            lines starting with '#' skipped; comma, semicolon, tab or space separated, decimal
+            point or comma), or an .npz (`numpy.load`) / .mat (`scipy.io.loadmat`) file of
+            named arrays; `(N, 1)` and `(1, N)` arrays are flattened.
+        columns: our names (t, u, q, qdot) → names in the file, e.g. ``{"u": "vir", "q": "qm"}``.
+            ``"name:k"`` selects column k of a 2-D array, e.g. ``{"q": "data:2"}``.
+            Unmapped names are looked up as themselves; qdot is loaded when present.
+        name: label of the experiment (default: the file name without suffix).
+        time_step: sample period in s; builds ``t = arange(N)·time_step`` when the file has no
+            time column. If the file has one, its step must agree within `rtol`.
+        rtol: relative tolerance of the uniform-sampling check.
+        start, stop: keep samples ``start ≤ k < stop`` of the file (``t`` not shifted).
+        units: `load_segments`' time_unit, position_unit, counts_per_rev, counts_per_m and
+            wrap_period.
+
+    A record with missing or empty values is refused here (naming the first, by its line in
+    a CSV); `load_segments` reads it as segments.
+    """
+    exps, notes = load_segments(
+        path, columns=columns, name=name, time_step=time_step, rtol=rtol, start=start,
+        stop=stop, **units,
+    )  # fmt: skip
+    if notes:
+        raise TorchfricError(
+            f"{path}: {notes[0].split(': ', 1)[1].split(': read as')[0]}; one record must be "
+            "whole: fill or cut them (torchfric check and train read such a record as segments; "
+            "load_segments in Python)"
+        )
+    return exps[0]
 
 
 def save_csv(path: PathLike, experiment: Experiment, *, include_qdot: bool = True) -> None:

@@ -1,39 +1,102 @@
 """Units and column names of the data files: the one place they are defined.
 
-- `COLUMN_NAMES`: the columns torchfric reads (t in s, the input u, the position q, and
-  optionally the velocity qdot);
+- `COLUMN_NAMES`: the columns torchfric reads (t, the input u, the position q, and optionally
+  the velocity qdot);
+- `TIME_UNITS`: the units ``data.time_unit`` accepts, each with its factor to s;
 - `POSITION_UNITS`: the units ``data.position_unit`` accepts, each with its factor to SI (rad
-  for a rotary axis, m for a linear one);
+  for a rotary axis, m for a linear one); ``"counts"`` has none of its own: `position_factor`
+  takes it from the counts per revolution (or per metre);
 - `UNIT_ALIASES`: how lab software writes a unit in a column header (``[deg]``, ``(ms)``,
-  ``[counts]``) → the unit's canonical name;
+  ``/ms``, ``in ms``, ``[Inkremente]``) → the unit's canonical name; `split_unit` reads it;
 - `si_unit`, `force_unit`: the SI unit a position is converted to and the friction's unit.
 """
 
 from __future__ import annotations
 
 import math
+import re
+import unicodedata
 
-__all__ = ["COLUMN_NAMES", "POSITION_UNITS", "UNIT_ALIASES", "force_unit", "si_unit"]
+__all__ = [
+    "COLUMN_NAMES",
+    "POSITION_UNITS",
+    "TIME_UNITS",
+    "UNIT_ALIASES",
+    "force_unit",
+    "position_factor",
+    "si_unit",
+    "split_unit",
+]
 
 COLUMN_NAMES: tuple[str, ...] = ("t", "u", "q", "qdot")
 
-POSITION_UNITS: dict[str, float] = {"rad": 1.0, "deg": math.pi / 180.0, "m": 1.0, "mm": 1e-3}
-"""Unit of q in the data files → factor to SI (rad or m) that the runner multiplies q by."""
+TIME_UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+"""Unit of t in the data files → factor to s that the loader multiplies t by."""
+
+POSITION_UNITS: dict[str, float | None] = {
+    "rad": 1.0, "deg": math.pi / 180.0, "m": 1.0, "mm": 1e-3, "counts": None,
+}  # fmt: skip
+"""Unit of q in the data files → factor to SI (rad or m) that the loader multiplies q by
+(None for counts: 2π / counts per revolution, or 1 / counts per metre)."""
 
 UNIT_ALIASES: dict[str, str] = {
-    "deg": "deg", "degree": "deg", "degrees": "deg", "°": "deg", "rad": "rad",
+    "deg": "deg", "degree": "deg", "degrees": "deg", "°": "deg", "grad": "deg", "rad": "rad",
     "radian": "rad", "radians": "rad", "m": "m", "meter": "m", "metre": "m",
     "meters": "m", "metres": "m", "mm": "mm", "counts": "counts", "count": "counts",
-    "cnt": "counts", "cnts": "counts", "inc": "counts", "ticks": "counts",
-    "s": "s", "sec": "s", "ms": "ms", "us": "us", "µs": "us",
+    "cnt": "counts", "cnts": "counts", "inc": "counts", "incr": "counts", "ticks": "counts",
+    "increments": "counts", "inkremente": "counts", "inkr": "counts", "pulses": "counts",
+    "impulse": "counts", "digits": "counts",
+    "s": "s", "sec": "s", "ms": "ms", "us": "us", "µs": "us", "μs": "us",
 }  # fmt: skip
 
-
-def si_unit(unit: str) -> str:
-    """The SI unit positions in `unit` are converted to: "m" (linear) or "rad" (rotary)."""
-    return "m" if unit in ("m", "mm") else "rad"
+_EXPLICIT = re.compile(r"\s*(?:[\[(]([^\])]*)[\])]|/\s*(\S+)|\s+in\s+(\S+))\s*$")
 
 
-def force_unit(unit: str) -> str:
+def _plain(text: str) -> str:
+    """Lower case without accents: ``Stellgröße`` → ``stellgrosse``, ``Posición`` →
+    ``posicion`` (µ and ° are kept: they are units)."""
+    text = text.strip().lower().replace("ß", "ss")
+    decomposed = unicodedata.normalize("NFKD", text)
+    return "".join(c for c in decomposed if not unicodedata.combining(c)).replace("μ", "µ")
+
+
+def split_unit(name: str) -> tuple[str, str | None, bool]:
+    """(base name, unit, whether the unit is explicit) of a column name: ``"Zeit [ms]"`` →
+    ("zeit", "ms", True), ``"t/ms"`` and ``"Zeit in ms"`` likewise, ``"pos_deg"`` → ("pos",
+    "deg", False); the unit is None when the name gives none (or one we do not know)."""
+    s, unit, explicit = _plain(name), None, False
+    m = _EXPLICIT.search(s)
+    if m and m.start() > 0:
+        s, unit = s[: m.start()], UNIT_ALIASES.get(next(g for g in m.groups() if g).strip())
+        explicit = unit is not None
+    s = re.sub(r"[\s.\-]+", "_", s).strip("_")
+    base, sep, tail = s.rpartition("_")
+    if unit is None and sep and base and tail in UNIT_ALIASES:
+        s, unit = base, UNIT_ALIASES[tail]
+    return s, unit, explicit
+
+
+def position_factor(
+    unit: str, counts_per_rev: float | None = None, counts_per_m: float | None = None
+) -> float:
+    """The factor from `unit` to SI: `POSITION_UNITS`, or for counts 2π/`counts_per_rev` (a
+    rotary axis) or 1/`counts_per_m` (a linear one)."""
+    factor = POSITION_UNITS[unit]
+    if factor is not None:
+        return factor
+    if counts_per_rev:
+        return 2.0 * math.pi / counts_per_rev
+    if counts_per_m:
+        return 1.0 / counts_per_m
+    raise ValueError("position unit 'counts' needs counts_per_rev or counts_per_m")
+
+
+def si_unit(unit: str, counts_per_m: float | None = None) -> str:
+    """The SI unit positions in `unit` are converted to: "m" (linear) or "rad" (rotary);
+    counts are metres with `counts_per_m`, else radians."""
+    return "m" if unit in ("m", "mm") or (unit == "counts" and counts_per_m) else "rad"
+
+
+def force_unit(unit: str, counts_per_m: float | None = None) -> str:
     """The unit of the friction (and of c_m·u) on an axis whose positions are in `unit`."""
-    return "N" if si_unit(unit) == "m" else "N m"
+    return "N" if si_unit(unit, counts_per_m) == "m" else "N m"

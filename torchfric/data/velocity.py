@@ -24,6 +24,7 @@ __all__ = [
     "zero_phase_derivative",
     "zero_phase_acceleration",
     "reconstruct_velocity",
+    "settling_samples",
     "VELOCITY_METHODS",
     "DEFAULT_CUTOFF_HZ",
 ]
@@ -144,3 +145,18 @@ def reconstruct_velocity(
         )
     cutoff = DEFAULT_CUTOFF_HZ[method] if cutoff_hz is None else cutoff_hz
     return VELOCITY_METHODS[method](q, dt, cutoff)
+
+
+def settling_samples(method: str, dt: float, cutoff_hz: float | None = None) -> int:
+    """Samples after a start in motion before `method`'s velocity is the motion's: the
+    high-pass differentiator starts at v = 0 and its error decays as ``p^k`` (to 1e-3 here);
+    the zero-phase filter's ends are off for ≈ 3 cut-off periods (``3/(cutoff_hz·dt)``);
+    0 for any other method (a measured velocity)."""
+    if method not in VELOCITY_METHODS:
+        return 0
+    cutoff = DEFAULT_CUTOFF_HZ[method] if cutoff_hz is None else cutoff_hz
+    if method == "zero_phase":
+        return math.ceil(3.0 / (cutoff * dt))
+    k, wc = 2.0 / dt, 2.0 * math.pi * cutoff
+    p = (k - wc) / (k + wc)
+    return 1 if p <= 0 else math.ceil(math.log(1e-3) / math.log(p))

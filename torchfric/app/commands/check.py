@@ -71,18 +71,23 @@ def _shown(path: str) -> str:
 
 
 def _records(label: str, exps: list[Experiment], paths: tuple[str, ...]) -> list[str]:
-    """One line per record: file, samples, sample time and rate, duration."""
+    """One line per record: file, samples, sample time and rate, duration (and its segments,
+    ``NAME#1``, ``NAME#2``, … where gaps cut it)."""
     if not exps:
         return [_line(label, "none")]
-    lines = []
-    for i, (exp, path) in enumerate(zip(exps, paths, strict=True)):
-        lines.append(
-            _line(
-                label if i == 0 else "",
-                f"{_shown(path)}: {exp.n} samples, dt {exp.dt:.6g} s ({1.0 / exp.dt:.6g} Hz), "
-                f"{exp.duration:.6g} s",
-            )
+    lines, rest = [], list(exps)
+    for i, path in enumerate(paths):
+        stem = pathlib.Path(path).stem if not path.startswith("rig:") else path[4:]
+        part = [rest.pop(0)] if rest else []
+        while rest and part[0].name.startswith(f"{stem}#") and rest[0].name.startswith(f"{stem}#"):
+            part.append(rest.pop(0))
+        n, dt = sum(e.n for e in part), part[0].dt
+        cut = f" in {len(part)} segments" if len(part) > 1 else ""
+        text = (
+            f"{_shown(path)}: {n} samples{cut}, dt {dt:.6g} s ({1.0 / dt:.6g} Hz), "
+            f"{sum(e.duration for e in part):.6g} s"
         )
+        lines.append(_line(label if i == 0 else "", text))
     return lines
 
 
@@ -191,12 +196,10 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     if test:
         lines += _records("test", test, d.test)
     lines.append(_line("velocity", _velocity(cfg)))
-    lines.append(_line("units", _units(d.position_unit, train)))
+    lines.append(_line("units", _units(cfg, train)))
     if d.position_unit != "rad" or d.start or d.stop is not None or d.input_delay:
         span = f"samples {d.start} … {'end' if d.stop is None else d.stop - 1}"
-        lines.append(
-            _line("reading", f"q in {d.position_unit}, {span}, input delay {d.input_delay}")
-        )
+        lines.append(_line("reading", f"q in {_q_unit(cfg)}, {span}, input delay {d.input_delay}"))
     lines += _model_lines(cfg, base, start, init_kind)
     lines += _estimator_lines(cfg, sum(e.n for e in train))
     lines += [_line("warning", w) for w in found]
@@ -205,18 +208,33 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     return "\n".join(lines)
 
 
-def _units(unit: str, train: list[Experiment]) -> str:
+def _q_unit(cfg: Config) -> str:
+    """The unit q is read in: ``deg``, ``counts (4096 per rev)``, with its wrap."""
+    d = cfg.data
+    unit = d.position_unit
+    if unit == "counts":
+        unit += (
+            f" ({d.counts_per_rev:g} per rev)"
+            if d.counts_per_rev
+            else f" ({d.counts_per_m:g} per m)"
+        )
+    return unit + (f", unwrapped at {d.wrap_period:g}" if d.wrap_period else "")
+
+
+def _units(cfg: Config, train: list[Experiment]) -> str:
     """The units the data are read in, with the identification data's top speed in them: the
     number that shows a position in degrees (or mm) read as rad (or m) at a glance."""
-    si = si_unit(unit)
+    d = cfg.data
+    si = si_unit(d.position_unit, d.counts_per_m)
+    t = "t in s" if d.time_unit == "s" else f"t in {d.time_unit} (read as s)"
     speeds = [float(e.qdot.abs().max()) for e in train if e.qdot is not None and e.n]
     if not speeds:
-        return f"t in s, q in {unit} (read as {si})"
+        return f"{t}, q in {_q_unit(cfg)} (read as {si})"
     v = max(speeds)
     turns = f" = {rpm(v):,.0f} rpm" if si == "rad" else ""
     return (
-        f"t in s, q in {unit}: |q̇| reaches {v:.3g} {si}/s{turns} in the identification data; "
-        "if your machine never moves that fast, set data.position_unit"
+        f"{t}, q in {_q_unit(cfg)}: |q̇| reaches {v:.3g} {si}/s{turns} in the identification "
+        "data; if your machine never moves that fast, set data.position_unit"
     )
 
 

@@ -3,16 +3,19 @@ qdot), and whether its time and position units are what they seem.
 
 - `parse_columns`: ``--column OURS=NAME`` flags (or a mapping) checked into a mapping; also used
   by ``evaluate`` and ``simulate``.
-- `map_columns`: ours by name or a common alternative (`ALIASES`), without case and without a
-  unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name wins, and
-  for t, u and q a name with an alternative as one of its words (``motor_current``) comes
-  last. Two
-  candidates, or none for t, u or q, stop with the header and the line to write.
-- `refuse_time_unit`, `refuse_milliseconds`: a time column in ms (by its name, or by a step of
-  `MS_STEP` or more, or by the data check's evidence) is refused, not worked around.
-- `position_unit_guess`: a unit in q's column name sets ``position_unit``; otherwise rad (or m),
-  with a note when whole numbers only (encoder counts) or a speed above `FAST_SPEED` units/s
-  suggest otherwise. `slow_cutoff`: a velocity cut-off for records too slow for 200 Hz.
+- `map_columns`: ours by name or a common alternative (`ALIASES`, English and the languages of
+  lab software: German, French, Spanish, Italian), without case, accents and a unit
+  (`torchfric.data.units.split_unit`: ``Time [s]``, ``t/ms``, ``pos_deg``); our own name wins,
+  and for t, u and q a name with an alternative as one of its words (``motor_current``) comes
+  last. Two candidates, or none for t, u or q, stop with the header and the line to write.
+- `time_unit_of`: the unit in t's name; `refuse_milliseconds`: a step that looks like ms (a
+  step of `MS_STEP` or more, or by the data check's evidence) is refused, not worked around.
+- `position_unit_guess`: the unit of q (`PositionGuess`): from its name, encoder counts (with
+  their resolution, given or from a wrap) and a wrap period; otherwise rad (or m), with a note
+  when a speed above `FAST_SPEED` units/s suggests otherwise. `slow_cutoff`: a velocity
+  cut-off for records too slow for 200 Hz.
+- `held_out_role`, `held_out_siblings`: records beside the data named as its held-out ones;
+  `parse_counts`: ``--counts-per-rev``/``--counts-per-m``.
 """
 
 from __future__ import annotations
@@ -21,34 +24,48 @@ import math
 import pathlib
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings
-from ...data.units import COLUMN_NAMES, POSITION_UNITS, UNIT_ALIASES
+from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings, load_segments
+from ...data.lab import nice_period, wrap_jumps
+from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, split_unit
 from ...errors import TorchfricError, shorten
 from ..config import toml_value
 
 __all__ = [
     "ALIASES",
+    "held_out_role",
+    "held_out_siblings",
+    "parse_counts",
     "FAST_SPEED",
     "MS_STEP",
     "map_columns",
     "parse_columns",
+    "PositionGuess",
     "position_unit_guess",
     "refuse_milliseconds",
-    "refuse_time_unit",
+    "time_unit_of",
     "rpm",
     "slow_cutoff",
 ]
 
 ALIASES: dict[str, tuple[str, ...]] = {
-    "t": ("t", "time", "times", "timestamp", "sec", "secs", "seconds"),
+    "t": ("t", "time", "times", "timestamp", "sec", "secs", "seconds",
+          "zeit", "zeitstempel", "zeitpunkt", "temps", "tiempo", "tempo"),
     "u": ("u", "input", "current", "i", "iq", "cmd", "command", "control", "torque", "tau",
-          "force", "voltage", "volt", "pwm"),
-    "q": ("q", "pos", "position", "theta", "th", "angle", "phi", "qm", "x", "encoder", "enc"),
+          "force", "voltage", "volt", "pwm",
+          "strom", "motorstrom", "sollstrom", "stellgrosse", "stellgroesse", "stellwert",
+          "eingang", "spannung", "moment", "drehmoment", "sollmoment", "kraft",
+          "courant", "couple", "commande", "tension", "corriente", "par", "entrada",
+          "corrente", "coppia", "ingresso"),
+    "q": ("q", "pos", "position", "theta", "th", "angle", "phi", "qm", "x", "encoder", "enc",
+          "winkel", "drehwinkel", "lage", "weg", "istposition", "istwinkel", "geber",
+          "posicion", "angulo", "posizione", "angolo"),
     "qdot": ("qdot", "q_dot", "qd", "dq", "dqdt", "velocity", "vel", "speed", "omega",
-             "thetadot", "theta_dot", "dtheta", "xdot", "x_dot"),
+             "thetadot", "theta_dot", "dtheta", "xdot", "x_dot", "geschwindigkeit",
+             "winkelgeschwindigkeit", "vitesse", "velocidad", "velocita"),
 }  # fmt: skip
 """Names (lower case, unit removed) recognised for each of our columns; our own name first."""
 FAST_SPEED = 100.0
@@ -58,7 +75,6 @@ MS_STEP = 0.5
 1 kHz record in ms steps by 1.0, a 2 kHz one by 0.5, and friction transients need far faster
 sampling than 2 Hz. Between 0.05 s and this, the data check's evidence decides."""
 _MEANING = {"t": "time in s", "u": "input", "q": "position", "qdot": "velocity"}
-_UNIT_IN_BRACKETS = re.compile(r"\s*[\[(]([^\])]*)[\])]\s*$")
 
 
 # ------------------------------------------------------------------------------------ columns
@@ -86,17 +102,9 @@ def parse_columns(columns: Mapping[str, str] | Sequence[str]) -> dict[str, str]:
 
 
 def _parse_name(name: str) -> tuple[str, str | None]:
-    """(base name, unit) of a column name: ``"Time [s]"`` → ("time", "s"), ``"pos_deg"`` →
-    ("pos", "deg"); the unit is None when the name gives none."""
-    s, unit = name.strip().lower(), None
-    m = _UNIT_IN_BRACKETS.search(s)
-    if m:
-        s, unit = s[: m.start()], UNIT_ALIASES.get(m.group(1).strip())
-    s = re.sub(r"[\s.\-]+", "_", s).strip("_")
-    base, sep, tail = s.rpartition("_")
-    if unit is None and sep and base and tail in UNIT_ALIASES:
-        s, unit = base, UNIT_ALIASES[tail]
-    return s, unit
+    """(base name, unit) of a column name (`torchfric.data.units.split_unit`)."""
+    base, unit, _ = split_unit(name)
+    return base, unit
 
 
 def map_columns(
@@ -134,14 +142,11 @@ def map_columns(
 
 
 # ------------------------------------------------------------------------------------ checks
-def refuse_time_unit(mapping: Mapping[str, str], path: pathlib.Path) -> None:
+def time_unit_of(mapping: Mapping[str, str]) -> str:
+    """The unit of the t column by its name (``Zeit [ms]``, ``t_ms``), else s."""
     name = mapping.get("t")
     unit = _parse_name(name)[1] if name else None
-    if unit in ("ms", "us"):
-        raise TorchfricError(
-            f"{path}: the time column {name!r} is in {unit}; torchfric reads t in seconds: "
-            "convert it (t/1000 for ms), or leave it out and give --time-step SECONDS"
-        )
+    return unit if unit in TIME_UNITS else "s"
 
 
 def refuse_milliseconds(exp: Experiment, name: str | None, path: pathlib.Path) -> None:
@@ -166,31 +171,84 @@ def refuse_milliseconds(exp: Experiment, name: str | None, path: pathlib.Path) -
         )
     raise TorchfricError(
         f"{path}: the time column {name!r} steps by {rate}, which looks like milliseconds "
-        f"({why}); torchfric reads t in seconds: convert the column to seconds (t/1000), or "
-        "leave it out and give --time-step SECONDS"
+        f'({why}); name the unit in the header ("{name} [ms]"), which init then reads as '
+        'data.time_unit = "ms", or leave the column out and give --time-step SECONDS'
+    )
+
+
+@dataclass
+class PositionGuess:
+    """What init writes for q: ``position_unit`` (and counts per revolution or metre, the wrap
+    period), the reason, a hint for the config's comment, and notes for the user."""
+
+    unit: str
+    why: str
+    hint: str = ""
+    notes: list[str] = field(default_factory=list)
+    counts_per_rev: float | None = None
+    counts_per_m: float | None = None
+    wrap_period: float | None = None
+
+
+def _wrap(parts: Sequence[np.ndarray], unit: str | None) -> tuple[float | None, str]:
+    """(the period q wraps at, a note), or (None, "") when no segment of q wraps."""
+    jumps = sum(wrap_jumps(part).size for part in parts)
+    if not jumps:
+        return None, ""
+    q = np.concatenate(parts)
+    period = 360.0 if unit == "deg" else 2 * math.pi if unit == "rad" else nice_period(q)
+    return period, (
+        f"q wraps ({jumps} jump(s) of about {period:g} between samples, "
+        f"{q.min():.6g} … {q.max():.6g}): unwrapped at load, data.wrap_period = {period:g}"
     )
 
 
 def position_unit_guess(
-    name: str, q: np.ndarray, dt: float, config: str
-) -> tuple[str, str, str, list[str]]:
-    """(data.position_unit, the reason for the terminal and the config's comment, a hint for
-    that comment, notes to show the user)."""
+    name: str, parts: Sequence[np.ndarray], dt: float, config: str, *,
+    counts_per_rev: float | None = None, counts_per_m: float | None = None,
+) -> PositionGuess:  # fmt: skip
+    """What init writes for q (`PositionGuess`), from q's column name, its values (each
+    segment's, in the file's unit) and ``--counts-per-rev``/``--counts-per-m``."""
     unit = _parse_name(name)[1]
-    if unit in POSITION_UNITS:
-        return unit, f'from the column name "{name}"', "", []
-    speed = float(np.quantile(np.abs(np.diff(q)), 0.99)) / dt
-    if unit == "counts" or (np.all(q == np.round(q)) and np.unique(q).size >= 20):
+    q = np.concatenate(parts)
+    counted = unit == "counts" or (np.all(q == np.round(q)) and np.unique(q).size >= 20)
+    period, wrap_note = _wrap(parts, unit)
+    if counts_per_rev or counts_per_m or (counted and unit not in ("rad", "deg", "m", "mm")):
         why = f'the name "{name}" says counts' if unit == "counts" else "q holds whole numbers only"
-        note = (
-            f"{why} ({q.min():.0f} … {q.max():.0f}): encoder counts? torchfric has no unit for "
-            "counts; convert q to rad (× 2π / counts per turn) or to m before training, or "
-            "every parameter comes out per count"
+        per_rev = counts_per_rev if not counts_per_m else None
+        if not (per_rev or counts_per_m):
+            if period is None:
+                raise TorchfricError(
+                    f"{why} ({q.min():.0f} … {q.max():.0f}): encoder counts; rerun with "
+                    "--counts-per-rev N (counts per revolution of a rotary axis) or "
+                    "--counts-per-m N (per metre of a linear one), which init writes as "
+                    'position_unit = "counts"; if q is not in counts, name its unit in the '
+                    'header, e.g. "q [mm]"'
+                )
+            per_rev = period
+            wrap_note += (
+                f"; counts_per_rev = {period:g} is taken from the wrap: correct it if the "
+                "encoder counts otherwise per revolution"
+            )
+        given = "--counts-per-rev" if counts_per_rev else "--counts-per-m" if counts_per_m else ""
+        return PositionGuess(
+            "counts", f"{why}; {f'{given} given' if given else 'per revolution from the wrap'}",
+            notes=[wrap_note] if wrap_note else [], counts_per_rev=per_rev,
+            counts_per_m=counts_per_m, wrap_period=period,
+        )  # fmt: skip
+    notes = [wrap_note] if wrap_note else []
+    if unit in POSITION_UNITS:
+        return PositionGuess(
+            unit, f'from the column name "{name}"', notes=notes, wrap_period=period
         )
-    elif speed > FAST_SPEED:
+    steps = np.concatenate([np.abs(np.diff(part)) for part in parts])
+    if period is not None:
+        steps = steps[steps < 0.5 * period]
+    speed = float(np.quantile(steps, 0.99)) / dt
+    if speed > FAST_SPEED:
         fast = f"q moves at up to {speed:.4g} units/s, {rpm(speed):,.0f} rpm if in rad"
-        deg = f"{speed * POSITION_UNITS['deg']:.3g} rad/s"
-        note = (
+        deg = f"{speed * math.pi / 180.0:.3g} rad/s"
+        notes.append(
             f'{fast}: if q is in degrees, change the line position_unit = "rad" under [data] '
             f'in {config} to position_unit = "deg" ({deg}); in millimetres, to "mm"'
         )
@@ -198,10 +256,10 @@ def position_unit_guess(
             f"Up to {speed:.4g} units/s is {rpm(speed):,.0f} rpm in rad: if q is in "
             f'degrees, write position_unit = "deg" below ({deg}); in millimetres, "mm".'
         )
-        return "rad", "taken as rad, but q moves fast for rad", hint, [note]
-    else:
-        return "rad", "nothing says otherwise; for a linear axis in m, the same numbers", "", []
-    return "rad", "taken as rad, but see the note at the top", "", [note]
+        return PositionGuess("rad", "taken as rad, but q moves fast for rad", hint, notes,
+                             wrap_period=period)  # fmt: skip
+    why = "nothing says otherwise; for a linear axis in m, the same numbers"
+    return PositionGuess("rad", why, notes=notes, wrap_period=period)
 
 
 def slow_cutoff(dt: float) -> float | None:
@@ -215,3 +273,83 @@ def slow_cutoff(dt: float) -> float | None:
 def rpm(speed: float) -> float:
     """A speed in rad/s as revolutions per minute (the number that shows degrees read as rad)."""
     return speed * 30.0 / math.pi
+
+
+# ------------------------------------------------------------------------------------ names
+_TRAIN_WORDS = {"train", "training", "identification", "ident", "id", "idf", "estimation", "fit"}
+_VALID_WORDS = {"val", "valid", "validation", "validate"}
+_TEST_WORDS = {"test", "testing"}
+
+
+def _words(stem: str) -> list[str]:
+    return [w for w in re.split(r"[^a-z0-9]+", stem.lower()) if w]
+
+
+def held_out_role(data: pathlib.Path, other: pathlib.Path) -> tuple[str, bool] | None:
+    """("validation" or "test", whether it pairs with `data`) when `other` is named as a
+    held-out record (a validation word wins over a test word), else None. It pairs when the
+    two names agree once the role words are dropped: ``run1_train`` ↔ ``run1_val`` and
+    ``run1_test``, ``train`` ↔ ``test``."""
+    words = _words(other.stem)
+    role = (
+        "validation"
+        if any(w in _VALID_WORDS for w in words)
+        else "test"
+        if any(w in _TEST_WORDS for w in words)
+        else None
+    )
+    if role is None:
+        return None
+    roles = _TRAIN_WORDS | _VALID_WORDS | _TEST_WORDS
+    rest = [w for w in words if w not in roles]
+    return role, rest == [w for w in _words(data.stem) if w not in roles]
+
+
+def held_out_siblings(
+    data: pathlib.Path,
+    mapping: Mapping[str, str],
+    time_step: float | None,
+    dt: float,
+    units: Mapping[str, object],
+) -> tuple[list[pathlib.Path], list[pathlib.Path], list[pathlib.Path]]:
+    """(validation, test, other): the held-out-named records beside `data` that read with its
+    columns and sample time (`_held_out`); the first two pair with `data`, the last do not.
+    Test-named ones are the validation when no validation-named one pairs."""
+    found: dict[tuple[str, bool], list[pathlib.Path]] = {}
+    for p in sorted(data.parent.iterdir()):
+        if p == data or p.suffix.lower() != data.suffix.lower() or not p.is_file():
+            continue
+        kind = held_out_role(data, p)
+        if kind is None:
+            continue
+        try:
+            exp = load_segments(p, columns=mapping, time_step=time_step, **units)[0][0]  # type: ignore[arg-type]
+        except TorchfricError:
+            continue
+        if abs(exp.dt - dt) <= 1e-3 * dt:
+            found.setdefault(kind, []).append(p)
+    val, test = found.get(("validation", True), []), found.get(("test", True), [])
+    other = sorted(found.get(("validation", False), []) + found.get(("test", False), []))
+    return (val, test, other) if val else (test, [], other)
+
+
+def parse_counts(per_rev: float | str | None, per_m: float | str | None) -> dict[str, float | None]:
+    """``--counts-per-rev`` and ``--counts-per-m``, checked: positive numbers, not both."""
+    out: dict[str, float | None] = {}
+    for key, value in (("counts_per_rev", per_rev), ("counts_per_m", per_m)):
+        if value is None:
+            continue
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        flag = "--" + key.replace("_", "-")
+        if not (math.isfinite(number) and number > 0):
+            raise TorchfricError(f"{flag} {value}: expected a positive number, e.g. {flag} 4096")
+        out[key] = number
+    if len(out) > 1:
+        raise TorchfricError(
+            "--counts-per-rev and --counts-per-m both given: an axis is rotary (per revolution) "
+            "or linear (per metre); give one"
+        )
+    return out

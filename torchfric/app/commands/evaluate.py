@@ -41,7 +41,6 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     ``--column`` and ``--position-unit`` in place of its columns and unit, the input delay
     applied — and the SI unit of its q. The training's sample range does not apply. A warning
     on stderr when the model's axis (linear or rotary) is not the record's."""
-    from ...data.units import si_unit
     from ..artifacts import checkpoint_config, checkpoint_model, read_checkpoint
     from ..config import RIG_PREFIX
     from ..run import load_record
@@ -57,7 +56,7 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         )
     raw = read_checkpoint(args.checkpoint)
     model, cfg = checkpoint_model(raw, args.checkpoint), checkpoint_config(raw)
-    trained_in = cfg.data.position_unit
+    trained_in, trained_axis = cfg.data.position_unit, cfg.data.axis_unit
     data = dataclasses.replace(
         cfg.data,
         start=0,
@@ -66,13 +65,13 @@ def load_for_eval(args: argparse.Namespace):  # type: ignore[no-untyped-def]
         position_unit=args.position_unit or trained_in,
     )
     cfg = dataclasses.replace(cfg, data=data)
-    unit = si_unit("rad" if rig else data.position_unit)
-    if unit != si_unit(trained_in):
+    unit = "rad" if rig else data.axis_unit
+    if unit != trained_axis:
         axis = {"m": "a linear axis", "rad": "a rotary axis"}
         read = "the rig's arm" if rig else f"--position-unit {data.position_unit}"
         sys.stderr.write(
-            f"warning: the model was identified on {axis[si_unit(trained_in)]} (data.position_unit"
-            f" = {trained_in!r}, q in {si_unit(trained_in)}) but {args.data} is {axis[unit]} "
+            f"warning: the model was identified on {axis[trained_axis]} (data.position_unit"
+            f" = {trained_in!r}, q in {trained_axis}) but {args.data} is {axis[unit]} "
             f"({read}, q in {unit}); the scores compare unlike quantities\n"
         )
     try:

@@ -1,23 +1,28 @@
 """``torchfric init DATA --c-m VALUE``: a commented starter config for a user's data file.
 
-`write_starter` reads the file with the project's readers (`read_columns`, `load_experiment`:
-every check a run makes on a record; which columns are ours and the units: `torchfric.app.commands.columns`)
-and writes a config only once it has passed `check_run`.
+`write_starter` reads the file with the project's readers (`read_columns`, `load_segments`:
+every check a run makes on a record; which columns are ours and the units:
+`torchfric.app.commands.columns`) and writes a config only once it has passed `check_run`.
 
-- Columns: ours (t, u, q, qdot) by name or a common alternative (`ALIASES`), without case and
-  without a unit in brackets or after an underscore (``Time [s]``, ``pos_deg``); our own name
-  wins. Two candidates, or none for t, u or q, stop with the header and the line to write.
-- Sample time: the t column's (uniform to the loader's 1e-3), or ``--time-step``. One that
-  looks like milliseconds is refused, not worked around: a step of `MS_STEP` (0.5 s, 2 Hz) or
-  more always (1 kHz in ms steps by 1.0; no servo record is sampled at 2 Hz), a step of 0.05 s
-  or more when the data check (`torchfric.data.data_warnings`, as ``check`` runs it with the
-  default 200 Hz filter) finds q or qdot moving as if sampled much faster. Any other rate too
-  slow for the 200 Hz velocity filter (100 Hz, the 40 Hz disc) gets ``velocity_cutoff_hz`` =
-  0.4 × Nyquist.
-- Units of q: a unit in the column's name sets ``position_unit``; without one q is taken as
-  rad (or m), with a note when whole numbers only (encoder counts) or a speed above
-  `FAST_SPEED` units/s (about 1000 rpm in rad) suggest otherwise; for the speed, the comment
-  beside ``position_unit`` says the line to write for degrees. The unit is never changed.
+- Format: a CSV's delimiter (comma, semicolon, tab, space) and decimal comma are sniffed by
+  the reader; anything but plain commas and points gets a note.
+- Columns: ours (t, u, q, qdot) by name or a common alternative in English, German, French,
+  Spanish or Italian (`ALIASES`: ``Zeit``, ``Strom``, ``Stellgröße``, ``Winkel``, …), without
+  case, accents and a unit (``Time [s]``, ``t/ms``, ``pos_deg``); our own name wins. Two
+  candidates, or none for t, u or q, stop with the header and the line to write.
+- Sample time: a unit in t's name (``Zeit [ms]``) is written as ``time_unit`` and applied at
+  load. The t column's step (uniform to the loader's 1e-3, gaps aside), or ``--time-step``,
+  that still looks like milliseconds is refused, not worked around: a step of `MS_STEP` (0.5 s,
+  2 Hz) or more always, a step of 0.05 s or more when the data check finds q or qdot moving as
+  if sampled much faster. Any other rate too slow for the 200 Hz velocity filter gets
+  ``velocity_cutoff_hz`` = 0.4 × Nyquist.
+- Gaps: rows missing or with empty/NaN fields cut the record into segments (train reads them
+  so too); the note says which lines.
+- Units of q: a unit in the column's name sets ``position_unit``. Encoder counts (by the name,
+  or whole numbers only) become ``"counts"`` with ``--counts-per-rev``/``--counts-per-m``, or
+  with the wrap period of a q that wraps; counts with neither are refused. A q that wraps gets
+  ``wrap_period``. Otherwise q is taken as rad (or m), with a note when a speed above
+  `FAST_SPEED` units/s suggests degrees.
 - Model: the white-box terms (``offset``, ``gravity``, ``asymmetric``) are written commented
   out, each with when to turn it on.
 - Validation: ``data.start``/``stop`` apply to every file, so one file cannot be split by
@@ -45,7 +50,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_experiment
+from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_segments
+from ...data.lab import sniff_format
 from ...data.readers import read_columns, save_csv
 from ...data.units import POSITION_UNITS
 from ...errors import TorchfricError
@@ -55,69 +61,20 @@ from ...version import __version__
 from ..config import MAX_NAME, Config, EstimatorConfig, ModelConfig, toml_value
 from .check import check_run
 from .columns import (
+    PositionGuess,
+    held_out_siblings,
     map_columns,
     parse_columns,
+    parse_counts,
     position_unit_guess,
     refuse_milliseconds,
-    refuse_time_unit,
     slow_cutoff,
+    time_unit_of,
 )
 
 __all__ = ["cmd_init", "write_starter"]
 
-_TRAIN_WORDS = {"train", "training", "identification", "ident", "id", "idf", "estimation", "fit"}
-_VALID_WORDS = {"val", "valid", "validation", "validate"}
-_TEST_WORDS = {"test", "testing"}
 _MIN_PART = 100  # samples in each part of a --split
-
-
-# ------------------------------------------------------------------------------------ validation
-def _words(stem: str) -> list[str]:
-    return [w for w in re.split(r"[^a-z0-9]+", stem.lower()) if w]
-
-
-def _held_out(data: pathlib.Path, other: pathlib.Path) -> tuple[str, bool] | None:
-    """("validation" or "test", whether it pairs with `data`) when `other` is named as a
-    held-out record (a validation word wins over a test word), else None. It pairs when the
-    two names agree once the role words are dropped: ``run1_train`` ↔ ``run1_val`` and
-    ``run1_test``, ``train`` ↔ ``test``."""
-    words = _words(other.stem)
-    role = (
-        "validation"
-        if any(w in _VALID_WORDS for w in words)
-        else "test"
-        if any(w in _TEST_WORDS for w in words)
-        else None
-    )
-    if role is None:
-        return None
-    roles = _TRAIN_WORDS | _VALID_WORDS | _TEST_WORDS
-    rest = [w for w in words if w not in roles]
-    return role, rest == [w for w in _words(data.stem) if w not in roles]
-
-
-def _siblings(
-    data: pathlib.Path, mapping: Mapping[str, str], time_step: float | None, dt: float
-) -> tuple[list[pathlib.Path], list[pathlib.Path], list[pathlib.Path]]:
-    """(validation, test, other): the held-out-named records beside `data` that read with its
-    columns and sample time (`_held_out`); the first two pair with `data`, the last do not.
-    Test-named ones are the validation when no validation-named one pairs."""
-    found: dict[tuple[str, bool], list[pathlib.Path]] = {}
-    for p in sorted(data.parent.iterdir()):
-        if p == data or p.suffix.lower() != data.suffix.lower() or not p.is_file():
-            continue
-        kind = _held_out(data, p)
-        if kind is None:
-            continue
-        try:
-            exp = load_experiment(p, columns=mapping, time_step=time_step)
-        except TorchfricError:
-            continue
-        if abs(exp.dt - dt) <= 1e-3 * dt:
-            found.setdefault(kind, []).append(p)
-    val, test = found.get(("validation", True), []), found.get(("test", True), [])
-    other = sorted(found.get(("validation", False), []) + found.get(("test", False), []))
-    return (val, test, other) if val else (test, [], other)
 
 
 def _split(
@@ -181,6 +138,10 @@ class _Plan:
         self.others: list[pathlib.Path] = []
         self.splits: dict[pathlib.Path, Experiment] = {}
         self.split = ""
+        self.segments: list[Experiment] = []
+        self.time_unit = "s"
+        self.counts: dict[str, float | None] = {}
+        self.position = PositionGuess("rad", "")
 
     def _validation(self) -> list[str]:
         val = [_rel(p, self.folder) for p in self.validation]
@@ -208,8 +169,18 @@ class _Plan:
             lines += _block("columns", self.mapping, _HELP["columns"])
         if self.time_step is not None:
             lines += _block("time_step", self.time_step, "Sample time [s]: the file has no t.")
-        unit = f"Unit of q in the file: {units} (q becomes rad or m); {self.unit_why}."
-        lines += _block("position_unit", self.unit, unit, self.unit_hint)
+        if self.time_unit != "s":
+            why = f"Unit of t in the file: {self.time_unit}, from its column name (t becomes s)."
+            lines += _block("time_unit", self.time_unit, why)
+        pos = self.position
+        unit = f"Unit of q in the file: {units} (q becomes rad or m); {pos.why}."
+        lines += _block("position_unit", pos.unit, unit, pos.hint)
+        if pos.counts_per_rev:
+            lines += _block("counts_per_rev", pos.counts_per_rev, _HELP["counts_per_rev"])
+        if pos.counts_per_m:
+            lines += _block("counts_per_m", pos.counts_per_m, _HELP["counts_per_m"])
+        if pos.wrap_period:
+            lines += _block("wrap_period", pos.wrap_period, _HELP["wrap_period"])
         lines += _block("velocity", "highpass", _HELP["velocity"])
         why = f"The velocity filter's cut-off [Hz], below Nyquist ({0.5 / self.exp.dt:g} Hz)."
         if self.cutoff is not None:
@@ -220,7 +191,8 @@ class _Plan:
             why,
             active=bool(self.cutoff),
         )
-        return lines + _block("stop", self.exp.n, _HELP["stop"], active=False)
+        n = sum(e.n for e in self.segments) if len(self.segments) > 1 else self.exp.n
+        return lines + _block("stop", n, _HELP["stop"], active=False)
 
     def text(self) -> str:
         exp, out = self.exp, self.out.name
@@ -230,8 +202,8 @@ class _Plan:
             f"#   torchfric check {out}    what a run would do (checks all, writes nothing)",
             f"#   torchfric train {out}    identify the model, in runs/{self.name}/",
             "# Every key, its default and allowed values: docs/config.md in the torchfric source.",
-            f"# {self.data.name}: {exp.n} samples, dt = {exp.dt:.6g} s ({1 / exp.dt:.6g} Hz, "
-            f"uniform to {self.jitter:.2g} of a step), {exp.duration:.6g} s.",
+            f"# {self.data.name}: {_samples(self)}, dt = {exp.dt:.6g} s ({1 / exp.dt:.6g} Hz, "
+            f"uniform to {self.jitter:.2g} of a step).",
             *[f"# Note: {n}" for n in self.notes],
             "",
             *_block("name", self.name, _HELP["name"]),
@@ -287,6 +259,10 @@ _HELP = {
     "velocity": 'q̇ for the estimator: "highpass" (the paper\'s causal differentiator), '
     '"zero_phase" (off-line) or "measured" (the file\'s qdot column).',
     "stop": "Use samples start <= k < stop of every file (also: start = 0).",
+    "counts_per_rev": "Encoder counts per revolution (q becomes rad); counts_per_m for a "
+    "linear axis.",
+    "counts_per_m": "Encoder counts per metre (q becomes m).",
+    "wrap_period": "q wraps at this value (in position_unit): each record is unwrapped at load.",
     "name": "The run: directory out_dir/name (out_dir: runs, relative to where train runs), "
     "checkpoint name.pt.",
     "seed": "Seeds the random parts (ensemble starts, output-error batches).",
@@ -346,28 +322,50 @@ def _out_path(data: pathlib.Path, out: str | os.PathLike[str] | None, force: boo
     return target
 
 
+def _units(plan: _Plan) -> dict[str, object]:
+    """The loader's unit arguments as the config will give them."""
+    return {"time_unit": plan.time_unit, "wrap_period": plan.position.wrap_period}
+
+
 def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> None:
-    """Columns, the record, its sample time and the unit of q into `plan`."""
+    """Columns, the record, its sample time and the units of t and q into `plan`."""
     data = plan.data
-    plan.mapping = map_columns(read_columns(data), columns, data, time_step is not None)
+    table = read_columns(data)
+    plan.mapping = map_columns(table, columns, data, time_step is not None)
     plan.read_as = dict(plan.mapping)
-    refuse_time_unit(plan.mapping, data)
     plan.time_step = time_step if "t" not in plan.mapping else None
-    plan.exp = exp = load_experiment(data, columns=plan.mapping, time_step=time_step)
+    plan.time_unit = time_unit_of(plan.mapping) if plan.time_step is None else "s"
+    exps, notes = load_segments(data, columns=plan.mapping, time_step=time_step,
+                                time_unit=plan.time_unit, wrap_period=math.inf)  # fmt: skip
+    plan.segments = exps
+    plan.exp = exp = max(exps, key=lambda e: e.n)
     refuse_milliseconds(exp, plan.mapping.get("t"), data)
-    steps = np.diff(exp.t.numpy())
+    parts = [e.q.numpy() for e in exps]
+    try:
+        plan.position = position_unit_guess(
+            plan.mapping["q"], parts, exp.dt, plan.out.name, **plan.counts
+        )
+    except TorchfricError as err:
+        raise TorchfricError(f"{data}: {err}") from None
+    if data.suffix.lower() == ".csv":
+        fmt = sniff_format(data)[0]
+        if fmt.delimiter != "," or fmt.decimal != ".":
+            plan.notes.append(f"{data.name} is {fmt.describe()}: read as such")
+    if plan.time_unit != "s":
+        plan.notes.append(
+            f"t in {plan.time_unit} (column {plan.mapping['t']!r}): data.time_unit = "
+            f'"{plan.time_unit}" converts it to s at load'
+        )
+    plan.notes += plan.position.notes + notes
+    steps = np.concatenate([np.diff(e.t.numpy()) for e in exps])
     plan.jitter = float(np.max(np.abs(steps - np.median(steps))) / np.median(steps))
-    plan.unit, plan.unit_why, plan.unit_hint, notes = position_unit_guess(
-        plan.mapping["q"], exp.q.numpy(), exp.dt, plan.out.name
-    )
-    plan.notes += notes
     plan.cutoff = slow_cutoff(exp.dt)
 
 
 def _propose_validation(plan: _Plan, split: float | str | None) -> None:
     if split is None:
-        plan.validation, plan.test, plan.others = _siblings(
-            plan.data, plan.mapping, plan.time_step, plan.exp.dt
+        plan.validation, plan.test, plan.others = held_out_siblings(
+            plan.data, plan.mapping, plan.time_step, plan.exp.dt, _units(plan)
         )
         return
     try:
@@ -378,6 +376,12 @@ def _propose_validation(plan: _Plan, split: float | str | None) -> None:
         raise TorchfricError(
             f"--split {split}: expected the identification part's fraction, between 0 and 1, "
             "e.g. --split 0.7 (the first 70 % identify, the last 30 % validate)"
+        )
+    if len(plan.segments) > 1 or plan.time_unit != "s" or plan.position.wrap_period:
+        raise TorchfricError(
+            f"--split {split}: {plan.data.name} is not a whole record in s (gaps, t in "
+            f"{plan.time_unit} or a wrapping q); init splits only plain records: give a second "
+            "record as validation instead (see the comment in the config without --split)"
         )
     plan.splits = _split(plan.exp, fraction, plan.folder, plan.data.stem)
     plan.train, plan.validation = list(plan.splits)[:1], list(plan.splits)[1:]
@@ -418,6 +422,8 @@ def write_starter(
     split: float | str | None = None,
     columns: Mapping[str, str] | Sequence[str] = (),
     time_step: float | None = None,
+    counts_per_rev: float | None = None,
+    counts_per_m: float | None = None,
 ) -> list[str]:
     """Write a commented starter config for the record `data`; returns what to tell the user.
 
@@ -431,6 +437,8 @@ def write_starter(
         columns: our name → the file's (a mapping, or ``"q=NAME"`` strings), where the names
             do not tell.
         time_step: sample time in s for a file without a time column.
+        counts_per_rev, counts_per_m: q is in encoder counts, so many per revolution (rotary)
+            or per metre (linear).
     """
     c = _c_m(c_m)
     path = pathlib.Path(data).absolute()
@@ -438,15 +446,17 @@ def write_starter(
         raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")
     mapping = parse_columns(columns)
     plan = _Plan(path, _out_path(path, out, force), c)
+    plan.counts = parse_counts(counts_per_rev, counts_per_m)
     _read(plan, mapping, time_step)
     _propose_validation(plan, split)
     found = _write(plan, force)
     exp = plan.exp
     lines = [
-        f"data        {plan.data.name}: {exp.n} samples, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} Hz, "
-        f"uniform to {plan.jitter:.2g} of a step), {exp.duration:.6g} s",
+        f"data        {plan.data.name}: {_samples(plan)}, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} "
+        f"Hz, uniform to {plan.jitter:.2g} of a step)",
         "columns     " + ", ".join(f"{k} = {v!r}" for k, v in plan.read_as.items()),
-        f"position    {plan.unit} ({plan.unit_why})",
+        *([f"time        {plan.time_unit} (read as s)"] if plan.time_unit != "s" else []),
+        f"position    {plan.position.unit} ({plan.position.why})",
     ]
     if plan.validation:
         lines.append("validation  " + ", ".join(p.name for p in plan.validation))
@@ -455,10 +465,16 @@ def write_starter(
     if plan.test:
         lines.append("test        " + ", ".join(p.name for p in plan.test))
     lines += [f"note        {n}" for n in plan.notes]
-    lines += [f"warning     {w}" for w in found]
+    lines += [f"warning     {w}" for w in found if w not in plan.notes]
     lines += [f"wrote       {p}" for p in (*plan.splits, plan.out)]
     lines.append(f"next        torchfric check {plan.out.name}; torchfric train {plan.out.name}")
     return lines
+
+
+def _samples(plan: _Plan) -> str:
+    n = sum(e.n for e in plan.segments)
+    cut = f" in {len(plan.segments)} segments" if len(plan.segments) > 1 else ""
+    return f"{n} samples{cut}, {sum(e.duration for e in plan.segments):.6g} s"
 
 
 def cmd_init(args: argparse.Namespace) -> int:
@@ -470,6 +486,8 @@ def cmd_init(args: argparse.Namespace) -> int:
         split=args.split,
         columns=args.column or (),
         time_step=args.time_step,
+        counts_per_rev=getattr(args, "counts_per_rev", None),
+        counts_per_m=getattr(args, "counts_per_m", None),
     )
     print("\n".join(lines))
     return 0

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from ...data.units import COLUMN_NAMES, POSITION_UNITS
+from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, position_factor, si_unit
 from ...errors import TorchfricError
 from ...estimators.tracking import TrackSettings
 from ...models.friction import FRICTIONS
@@ -69,7 +69,19 @@ class DataConfig(TableSection):
             1/(2·time step); ``None`` = the method's default (`DEFAULT_CUTOFF_HZ`: 200 Hz for
             "highpass", 50 Hz for "zero_phase"; a file sampled at 400 Hz or slower needs a
             lower one with "highpass").
-        position_unit: unit of q in the files (`POSITION_UNITS`); the runner converts to SI.
+        time_unit: unit of t in the files (`TIME_UNITS`: "s", "ms", "us"); the loader converts
+            to s. A header that states the unit (``Zeit [ms]``) must agree.
+        position_unit: unit of q in the files (`POSITION_UNITS`); the loader converts to SI.
+            "counts" needs `counts_per_rev` (rotary) or `counts_per_m` (linear). A header that
+            states the unit (``Winkel [deg]``) must agree.
+        counts_per_rev: encoder counts per revolution, for ``position_unit = "counts"`` on a
+            rotary axis (q becomes rad: × 2π / counts_per_rev).
+        counts_per_m: encoder counts per metre, for ``position_unit = "counts"`` on a linear
+            axis (q becomes m).
+        wrap_period: the period at which q wraps, in `position_unit` (4096 for a single-turn
+            count of 4096, 360 for degrees in 0 … 360); each segment is unwrapped at load.
+            ``None``: q does not wrap, and a record whose q jumps by about a period between
+            samples is refused.
         start, stop: keep samples ``start <= k < stop`` of every file (``stop=None``: to the end).
         input_delay: whole samples by which the input acts late (`Experiment.delay_input`:
             sample k is driven by ``u[k − input_delay]``; the first ones are dropped). 0 = none.
@@ -86,8 +98,17 @@ class DataConfig(TableSection):
     start: int = 0
     stop: int | None = None
     input_delay: int = 0
+    time_unit: str = "s"
+    counts_per_rev: float | None = None
+    counts_per_m: float | None = None
+    wrap_period: float | None = None
 
     PATH_KEYS: ClassVar[tuple[str, ...]] = ("train", "validation", "test")
+
+    @property
+    def axis_unit(self) -> str:
+        """The SI unit q is converted to: "m" (a linear axis) or "rad" (a rotary one)."""
+        return si_unit(self.position_unit, self.counts_per_m)
 
     def __post_init__(self) -> None:
         c = Check(self, "data")
@@ -132,6 +153,27 @@ class DataConfig(TableSection):
         if self.stop is not None and self.stop <= self.start:
             c.range_error("stop", self.stop, f"an integer > data.start = {self.start}, or omit it")
         c.integer("input_delay", ge=0)
+        c.string("time_unit", choices=tuple(TIME_UNITS))
+        c.number("counts_per_rev", gt=0.0, optional=True, example=4096.0)
+        c.number("counts_per_m", gt=0.0, optional=True, example=1e6)
+        c.number("wrap_period", gt=0.0, optional=True, example=4096.0)
+        per = [k for k in ("counts_per_rev", "counts_per_m") if getattr(self, k) is not None]
+        if self.position_unit == "counts" and len(per) != 1:
+            raise TorchfricError(
+                'data.position_unit = "counts" needs exactly one of data.counts_per_rev (a '
+                "rotary axis: counts per revolution) and data.counts_per_m (a linear axis), "
+                f"{'not both' if per else 'none is set'}; e.g. data.counts_per_rev = 4096"
+            )
+        if self.position_unit != "counts" and per:
+            raise TorchfricError(
+                f"data.{per[0]} is set but data.position_unit = {self.position_unit!r}; set "
+                'data.position_unit = "counts" (q in encoder counts), or remove it'
+            )
+
+    @property
+    def position_factor(self) -> float:
+        """The factor that turns q in `position_unit` into SI (rad or m)."""
+        return position_factor(self.position_unit, self.counts_per_rev, self.counts_per_m)
 
     @property
     def rig_only(self) -> bool:

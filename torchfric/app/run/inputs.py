@@ -1,8 +1,8 @@
 """From a config to what a run starts with: experiments, a memory check and the initial model.
 
-`load_record` reads one configured record (a file or ``rig:NAME``) the way a run does, and is
-what ``torchfric evaluate``/``simulate`` use for the file they are given; `load_data` reads the
-config's identification, validation and test groups; `check_resources` refuses a run too large
+`load_data` reads the config's identification, validation and test groups the way a run does
+(a record that gaps or missing values cut as its segments); `load_record` reads one whole
+record, for ``torchfric evaluate``/``simulate``/``track``; `check_resources` refuses a run too large
 for this machine before anything is written; `config_model` and `initial_model` build the model
 the estimator starts from.
 """
@@ -14,8 +14,8 @@ from typing import Any
 
 import torch
 
-from ...data import Experiment, data_warnings, load_experiment, make_experiment
-from ...data.units import POSITION_UNITS
+from ...data import Experiment, data_warnings, load_segments, make_experiment
+from ...data.velocity import settling_samples
 from ...errors import MissingColumn, TorchfricError
 from ...estimators.prefit import prefit
 from ...models.arm import ArmModel
@@ -24,51 +24,48 @@ from ...resources import ekf_bytes, prefit_bytes, require_memory
 from ..artifacts import load_checkpoint, sha256_file
 from ..config import RIG_PREFIX, Config
 
-__all__ = ["load_record", "load_data", "check_resources", "config_model", "initial_model"]
+__all__ = [
+    "load_record",
+    "load_data",
+    "check_resources",
+    "config_model",
+    "initial_model",
+]
 
 
-def _read_record(cfg: Config, path: str) -> tuple[Experiment, str]:
-    """The record at `path` (or the rig's ``rig:NAME``) in SI units, with its fingerprint."""
+def _read_record(cfg: Config, path: str) -> tuple[list[Experiment], str, list[str]]:
+    """The record at `path` (or the rig's ``rig:NAME``) in SI units as its segments (one for a
+    whole record), with its fingerprint and notes of what was left out."""
     d = cfg.data
-    if path.startswith(RIG_PREFIX):
-        from ...accel.native.lugre import lugre_integrator
-        from ...data.rig import rig_experiment
+    if not path.startswith(RIG_PREFIX):
+        exps, notes = load_segments(
+            path, columns=d.columns or None, time_step=d.time_step, start=d.start, stop=d.stop,
+            time_unit=d.time_unit, position_unit=d.position_unit, counts_per_rev=d.counts_per_rev,
+            counts_per_m=d.counts_per_m, wrap_period=d.wrap_period,
+        )  # fmt: skip
+        return exps, sha256_file(path), notes
+    from ...accel.native.lugre import lugre_integrator
+    from ...data.rig import rig_experiment
 
-        name = path[len(RIG_PREFIX) :]
-        arrays = rig_experiment(name, seed=cfg.seed, integrate=lugre_integrator())
-        exp = make_experiment(arrays["t"], arrays["u"], arrays["q"], name=name)
-        if d.start or d.stop is not None:
-            exp = exp.slice(d.start, d.stop)
-        digest = exp.fingerprint()
-    else:
-        exp = load_experiment(
-            path, columns=d.columns or None, time_step=d.time_step, start=d.start, stop=d.stop
-        )
-        digest = sha256_file(path)
-    factor = POSITION_UNITS[d.position_unit]
+    name = path[len(RIG_PREFIX) :]
+    arrays = rig_experiment(name, seed=cfg.seed, integrate=lugre_integrator())
+    exp = make_experiment(arrays["t"], arrays["u"], arrays["q"], name=name)
+    if d.start or d.stop is not None:
+        exp = exp.slice(d.start, d.stop)
+    digest = exp.fingerprint()
+    factor = d.position_factor
     if factor != 1.0:
-        exp = make_experiment(
-            exp.t,
-            exp.u,
-            exp.q * factor,
-            None if exp.qdot is None else exp.qdot * factor,
-            name=exp.name,
-        )
-    return exp, digest
+        exp = make_experiment(exp.t, exp.u, exp.q * factor, name=exp.name)
+    return [exp], digest, []
 
 
-def load_record(
-    cfg: Config, path: str, warnings: list[str] | None = None
-) -> tuple[Experiment, str]:
-    """One experiment with velocity per `data.velocity` and input per `data.input_delay`, and
-    its fingerprint.
-
-    `torchfric.data.data_warnings` about the record (on the file's own columns, before the
-    velocity is rebuilt) are appended to `warnings`; when the velocity cannot be rebuilt they
-    are folded into the error instead.
-    """
+def _prepared(
+    cfg: Config, exp: Experiment, path: str, warnings: list[str] | None, *, cut: bool = False
+) -> Experiment:
+    """`exp` with velocity per `data.velocity` and input per `data.input_delay`; a segment of a
+    `cut` record (which may start in motion) also without its velocity filter's start
+    transient (`settling_samples`), so that its state starts at the motion's velocity."""
     d = cfg.data
-    exp, digest = _read_record(cfg, path)
     found = data_warnings(exp, velocity=d.velocity, velocity_cutoff_hz=d.velocity_cutoff_hz)
     if warnings is not None:
         warnings.extend(found)
@@ -88,26 +85,48 @@ def load_record(
             raise TorchfricError(
                 f"{'; '.join(found)} (the velocity reconstruction: {err})"
             ) from None
+    if cut:
+        exp = exp.slice(settling_samples(d.velocity, exp.dt, d.velocity_cutoff_hz))
     if d.input_delay:
         exp = exp.delay_input(d.input_delay)
-    return exp, digest
+    return exp
+
+
+def load_record(
+    cfg: Config, path: str, warnings: list[str] | None = None
+) -> tuple[Experiment, str]:
+    """One whole experiment, as `load_data` reads it, and its fingerprint; a record that
+    gaps or missing values cut is refused (``evaluate``, ``simulate`` and ``track`` need one)."""
+    exps, digest, notes = _read_record(cfg, path)
+    if notes:
+        raise TorchfricError(
+            f"{notes[0].split(' (', 1)[0].split(': read as')[0]}; this command needs one whole "
+            "record: fill or cut the missing samples (train and check read it as segments)"
+        )
+    return _prepared(cfg, exps[0], path, warnings), digest
 
 
 def load_data(
     cfg: Config, *, warnings: list[str] | None = None
 ) -> tuple[list[Experiment], list[Experiment], list[Experiment], dict[str, str]]:
-    """(train, validation, test) experiments and SHA-256 fingerprints by path.
+    """(train, validation, test) experiments and SHA-256 fingerprints by path; a record that
+    gaps or missing values cut gives one experiment per segment, each without its velocity
+    filter's start transient.
 
-    Warnings about the identification and validation records are appended to `warnings`.
+    Warnings about the identification and validation records, and notes of rows left out of
+    any record, are appended to `warnings`.
     """
     prints: dict[str, str] = {}
     groups = []
     for group, paths in enumerate((cfg.data.train, cfg.data.validation, cfg.data.test)):
         exps = []
         for p in paths:
-            exp, digest = load_record(cfg, p, warnings if group < 2 else None)
-            prints[p] = digest
-            exps.append(exp)
+            segments, prints[p], notes = _read_record(cfg, p)
+            if warnings is not None:
+                warnings.extend(notes)
+            shown = warnings if group < 2 else None
+            cut = len(segments) > 1
+            exps.extend(_prepared(cfg, e, p, shown, cut=cut) for e in segments)
         groups.append(exps)
     if not groups[0]:
         raise TorchfricError("data.train is empty: give at least one identification file")

@@ -143,7 +143,7 @@ class KeptFigures:
     ) -> dict[str, Any]:
         """`model`'s figures (`model_figures`) at `step`, drawn to pixels, by tag."""
         figs = model_figures(
-            model, self.v_max, f"pass {step}", self.cfg.data.position_unit, P_theta,
+            model, self.v_max, f"pass {step}", self.cfg.data.axis_unit, P_theta,
             self.validation, dict(scores),
         )  # fmt: skip
         return {tag: pixels(fig) for tag, fig in figs.items()}

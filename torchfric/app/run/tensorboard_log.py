@@ -284,7 +284,7 @@ class TensorBoardLog(Callback):
                 w.add_scalar(f"validation/{name}/fit_q", f["fit_q"], record.index)
                 w.add_scalar(f"validation/{name}/fit_qdot", f["fit_qdot"], record.index)
             title = f"epoch {record.index} (best {result.best_epoch})"
-            model, step, unit = result.model, record.index, self.cfg.data.position_unit
+            model, step, unit = result.model, record.index, self.cfg.data.axis_unit
             self.figures(step, lambda: self.add_images(step, {
                 "friction_curve": pixels(friction_figure(model, self.v_max, title, unit))}))  # fmt: skip
         w.flush()

@@ -36,7 +36,7 @@ class ReportPage(Callback):
             self.run_dir / "report.html", title=self.cfg.name, model=end.model,
             metrics=dict(end.metrics), history=list(end.history),
             validation=self.drawing.validation, scores=dict(end.scores),
-            v_max=self.drawing.v_max, unit=self.cfg.data.position_unit, P_theta=end.covariance,
+            v_max=self.drawing.v_max, unit=self.cfg.data.axis_unit, P_theta=end.covariance,
             images={tag: png_from_pixels(px) for tag, px in images.items()},
         )  # fmt: skip
 

@@ -1,0 +1,225 @@
+"""CSV text as lab software and drives write it: `read_text_table`.
+
+The header line (the first that is neither blank nor a ``#`` comment) and up to `_SNIFF_ROWS`
+data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
+that splits the header and every sniffed line into the same number (≥ 2) of fields; the
+decimal separator is a comma when the delimiter is not one and a sniffed field is a number
+written with a comma (``1,25``). The body is then read by pandas' C parser (`pandas.read_csv`,
+imported on use): quoted fields, a byte-order mark, ``#`` comments, blank lines, empty fields
+and ``NaN`` (both read as NaN, which `torchfric.data.lab.segments` drops) are its business.
+
+A data row's place in the file is its line number (1-based, the header counted), found by
+`RowLines`, which reads the file again only when a message needs one.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import re
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ...errors import TorchfricError, shorten
+from ..convert import _one_line
+from ..guards import _MEMORY_FIX
+
+__all__ = ["CSV_FIX", "MAX_LINE", "RowLines", "TextFormat", "read_text_table", "sniff_format"]
+
+_HEAD_BYTES = 1 << 16  # the binary-data check looks at the first 64 KiB
+MAX_LINE = 1 << 20  # no header or comment line is longer than 1 MiB
+_SNIFF_ROWS = 50
+CSV_FIX = (
+    "give a UTF-8 text file with a header line such as t,u,q (or t;u;q) and one row of numbers "
+    "per sample"
+)
+_DELIMITERS = {"\t": "tab", ";": "semicolon", ",": "comma", " ": "space"}
+_COMMA_NUMBER = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
+# white space separates fields, but not a name from its unit: "Zeit [ms]" is one field
+_SPACED_FIELD = re.compile(r"[^\s\[(]+(?:\s*[\[(][^\])]*[\])])?|[\[(][^\])]*[\])]")
+
+
+@dataclass(frozen=True)
+class TextFormat:
+    """How a CSV's text was read: `delimiter` (tab, ``;``, ``,`` or ``" "`` for white space),
+    `decimal` (``.`` or ``,``) and the header's line number (1-based)."""
+
+    delimiter: str
+    decimal: str
+    header_line: int
+
+    def describe(self) -> str:
+        """E.g. ``"semicolon-separated, decimal comma"``, for notes."""
+        sep = _DELIMITERS[self.delimiter] + "-separated"
+        return sep + (", decimal comma" if self.decimal == "," else "")
+
+
+@dataclass
+class RowLines:
+    """Data row k (0-based, as read) → its line in the file (1-based, the header counted)."""
+
+    path: pathlib.Path
+    header_line: int
+    _lines: np.ndarray | None = field(default=None, repr=False)
+
+    def line(self, row: int) -> int:
+        if self._lines is None:
+            found = []
+            with self.path.open(encoding="utf-8-sig", errors="replace") as f:
+                for i, text in enumerate(f, start=1):
+                    body = text.strip()
+                    if i > self.header_line and body and not body.startswith("#"):
+                        found.append(i)
+            self._lines = np.asarray(found, dtype=np.int64)
+        return int(self._lines[row]) if row < self._lines.size else self.header_line + row + 1
+
+    def where(self, row: int) -> str:
+        return f"line {self.line(row)}"
+
+
+def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
+    """The one-line error for a file that is not UTF-8 text, naming the first bad byte."""
+    byte = exc.object[exc.start : exc.start + 1].hex() if exc.object else "?"
+    return TorchfricError(
+        f"{path}: cannot read the file: byte 0x{byte} is not UTF-8 text (a binary file, or text "
+        "in another encoding such as Latin-1); re-save it as UTF-8 (plain ASCII numbers)"
+    )
+
+
+def _head(path: pathlib.Path) -> tuple[int, str, list[str]]:
+    """(index, text) of the header line and up to `_SNIFF_ROWS` data lines after it."""
+    with path.open("rb") as f:
+        head = f.read(_HEAD_BYTES)
+    if not head:
+        raise TorchfricError(f"{path}: the file is empty (0 bytes); {CSV_FIX}")
+    nul = head.find(b"\0")
+    if nul >= 0:
+        raise TorchfricError(
+            f"{path}: cannot read the file as CSV: it holds binary data (a NUL byte at offset "
+            f"{nul}), not text; {CSV_FIX}"
+        )
+    header: tuple[int, str] | None = None
+    rows: list[str] = []
+    with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
+        for i, line in enumerate(iter(lambda: f.readline(MAX_LINE), "")):
+            if len(line) >= MAX_LINE and not line.endswith("\n"):
+                raise TorchfricError(
+                    f"{path}: line {i + 1} is longer than {MAX_LINE // 1024} KiB; this is not a "
+                    f"CSV with a header line; {CSV_FIX}"
+                )
+            body = line.strip()
+            if not body or body.startswith("#"):
+                continue
+            if header is None:
+                header = i, line.rstrip("\r\n")
+            else:
+                rows.append(body.split("#")[0].rstrip())
+                if len(rows) >= _SNIFF_ROWS:
+                    break
+    if header is None:
+        raise TorchfricError(
+            f"{path}: no header line; the first line must name columns, e.g. t,u,q"
+        )
+    return header[0], header[1], rows
+
+
+def _split(line: str, delimiter: str, *, header: bool = False) -> list[str]:
+    if delimiter == " ":
+        found = _SPACED_FIELD.findall(line) if header else line.split()
+        return [s.strip().strip("\"'") for s in found]
+    fields = [s.strip().strip("\"'") for s in line.split(delimiter)]
+    return fields[:-1] if len(fields) > 1 and not fields[-1] else fields  # a trailing delimiter
+
+
+def _sniff(path: pathlib.Path, header: str, rows: list[str]) -> tuple[str, list[str]]:
+    """(delimiter, column names): the first delimiter that splits the header and every sniffed
+    row alike into two or more fields."""
+    head = header.split("#")[0]
+    for delimiter in _DELIMITERS:
+        names = _split(head, delimiter, header=True)
+        if len(names) >= 2 and all(len(_split(r, delimiter)) == len(names) for r in rows):
+            return delimiter, names
+    for delimiter in _DELIMITERS:  # the header alone: rows that differ fail below, by line
+        names = _split(head, delimiter, header=True)
+        if len(names) >= 2:
+            return delimiter, names
+    raise TorchfricError(
+        f"{path}: the header {shorten(head.strip())!r} names one column; separate the column "
+        "names (and the numbers of each row) by commas, semicolons, tabs or spaces, e.g. t;u;q"
+    )
+
+
+def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
+    """How the CSV text at `path` is written, and its column names (the header's fields)."""
+    try:
+        header_at, header, rows = _head(path)
+    except UnicodeDecodeError as exc:
+        raise _not_utf8(path, exc) from None
+    except OSError as exc:
+        raise TorchfricError(f"{path}: cannot read the file ({_one_line(exc)})") from None
+    delimiter, names = _sniff(path, header, rows)
+    try:
+        [float(s.replace(",", ".")) for s in names]
+    except ValueError:
+        pass
+    else:
+        raise TorchfricError(
+            f"{path}: the first line holds numbers, not column names; add a header such as t,u,q"
+        )
+    if len(set(names)) != len(names) or "" in names:
+        raise TorchfricError(
+            f"{path}: header {shorten(str(names))} has empty or repeated column names"
+        )
+    fields = [f for r in rows for f in _split(r, delimiter)]
+    comma = delimiter != "," and any(_COMMA_NUMBER.match(f) for f in fields)
+    return TextFormat(delimiter, "," if comma else ".", header_at + 1), names
+
+
+def read_text_table(path: pathlib.Path) -> tuple[dict[str, np.ndarray], TextFormat, RowLines]:
+    """The named columns of a CSV text file, how it was read, and its rows' line numbers."""
+    fmt, names = sniff_format(path)
+    data = _parse(path, names, fmt)
+    if data.shape[0] == 0:
+        raise TorchfricError(f"{path}: no data rows below the header; the file holds no samples")
+    return {name: data[:, j] for j, name in enumerate(names)}, fmt, RowLines(path, fmt.header_line)
+
+
+def _parse(path: pathlib.Path, names: list[str], fmt: TextFormat) -> np.ndarray:
+    """The body as an `(N, len(names))` float array; empty fields and NaN are NaN."""
+    import pandas as pd  # on use: --help and the app's faces never load it
+
+    sep = r"\s+" if fmt.delimiter == " " else fmt.delimiter
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            frame = pd.read_csv(
+                path, sep=sep, decimal=fmt.decimal, comment="#", header=None, names=names,
+                usecols=range(len(names)), skiprows=fmt.header_line, index_col=False,
+                skip_blank_lines=True, encoding="utf-8-sig", engine="c",
+            )  # fmt: skip
+    except UnicodeDecodeError as exc:
+        raise _not_utf8(path, exc) from None
+    except MemoryError:
+        raise TorchfricError(
+            f"{path}: not enough memory to parse the file; {_MEMORY_FIX}"
+        ) from None
+    except Exception as exc:  # pandas' ParserError names the file's line ("in line 9")
+        raise TorchfricError(
+            f"{path}: cannot parse the data ({_one_line(exc)}); expected {len(names)} "
+            f"{fmt.describe()} numbers per row, as the header names"
+        ) from None
+    out = np.empty((len(frame), len(names)))
+    for j, name in enumerate(names):
+        col = frame[name]
+        values = pd.to_numeric(col, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+        bad = np.flatnonzero(np.isnan(values) & col.notna().to_numpy())
+        if bad.size:
+            row = int(bad[0])
+            line = RowLines(path, fmt.header_line).line(row)
+            raise TorchfricError(
+                f"{path}: line {line}: {shorten(str(col.iloc[row]))!r} in column {name!r} is not "
+                f"a number ({bad.size} in all; read as {fmt.describe()}); write numbers only"
+            )
+        out[:, j] = values
+    return out
