@@ -3,6 +3,7 @@
     python benchmarks/coverage.py                                   # 20 seeds × 3 models
     python benchmarks/coverage.py --seeds 0 1 2 --models tanh --jobs 2
     python benchmarks/coverage.py --set estimator.passes=20         # any --set, on every run
+    python benchmarks/coverage.py --models tanh-coulomb tanh-openloop   # the two diagnostics
 
 For every seed and model, as a user would: `torchfric.data.axis` (an independent simulator, not
 the built-in rig and not torchfric's vector field) records an identification and a validation
@@ -16,6 +17,14 @@ files; ``torchfric init IDENT.csv --c-m C_M`` writes the config, ``torchfric tra
 - the friction curve's band: `friction_band(model, P_theta, v)` of the checkpoint (the band the
   report draws) at 0.1, 0.25, 0.5, 0.75, 0.9 × the 95th percentile of |q̇_true| of the
   identification record, against `true_friction`.
+
+Two diagnostic machines separate the causes of a miss (not in the default run):
+
+- ``tanh-coulomb``: the tanh model on a Coulomb axis (the Stribeck preset with Fs = Fc: one tanh
+  neuron draws its curve exactly), so the curve class cannot bias M, b or the band;
+- ``tanh-openloop``: the tanh model on the Stribeck axis, its recorded input replayed open loop
+  with fresh disturbance and encoder noise (`simulate_axis`), so the input no longer carries the
+  measurement's error as it does in the position loop.
 
 A ±2σ interval of a Gaussian belief covers the truth 95.4 % of the time: that is the nominal
 coverage; the issue's acceptance band is 85–99 % (each of M, b and the curve). The table also
@@ -49,21 +58,28 @@ from torchfric.data.axis import (
     STRIBECK_AXIS,
     AxisParameters,
     axis_record,
+    simulate_axis,
     true_friction,
     write_csv,
 )
 
 MODELS = ("tanh", "polytopic", "lugre")
+DIAGNOSTICS = ("tanh-coulomb", "tanh-openloop")
 AXES: dict[str, tuple[str, AxisParameters]] = {  # model → (record name, machine)
     "tanh": ("stribeck", STRIBECK_AXIS),
     "polytopic": ("stribeck", STRIBECK_AXIS),
     "lugre": ("lugre", LUGRE_AXIS),
+    "tanh-coulomb": ("coulomb", dataclasses.replace(STRIBECK_AXIS, static=STRIBECK_AXIS.coulomb)),
+    "tanh-openloop": ("openloop", STRIBECK_AXIS),
 }
 SETS: dict[str, list[str]] = {
     "tanh": ["model.friction=tanh"],
     "polytopic": ["model.friction=polytopic"],
     "lugre": ["model.friction=tanh", "model.dynamic=lugre"],
+    "tanh-coulomb": ["model.friction=tanh"],
+    "tanh-openloop": ["model.friction=tanh"],
 }
+OPEN_LOOP_NOISE = 97  # the replay's noise seed is [seed, this, kind]: independent of the loop's
 FRACTIONS = (0.1, 0.25, 0.5, 0.75, 0.9)  # of the 95th percentile of |q̇_true|
 NOMINAL = 0.954
 ACCEPT = (0.85, 0.99)
@@ -110,10 +126,18 @@ def curve_check(checkpoint: Path, axis: AxisParameters, speeds: np.ndarray) -> l
 def make_records(folder: Path, seed: int, duration: float, name: str, axis: AxisParameters) -> dict:
     """Write NAME_ident.csv and NAME_valid.csv (once per seed) and the config from `init`."""
     ident, valid, cfg = (folder / f"{name}_{s}" for s in ("ident.csv", "valid.csv", "cfg.toml"))
-    rec = axis_record(axis, seed=seed, duration=duration, kind="identification")
+
+    def record(kind: str) -> dict:
+        rec = axis_record(axis, seed=seed, duration=duration, kind=kind)
+        if name == "openloop":  # the same input, open loop, with noise the input never saw
+            qm, qt, vt = simulate_axis(axis, rec["u"], seed=[seed, OPEN_LOOP_NOISE, len(kind)])
+            rec = {**rec, "q": qm, "q_true": qt, "qdot_true": vt}
+        return rec
+
+    rec = record("identification")
     if not ident.exists():
         write_csv(ident, rec)
-        write_csv(valid, axis_record(axis, seed=seed, duration=duration, kind="validation"))
+        write_csv(valid, record("validation"))
     if not cfg.exists():
         out = subprocess.run([*CLI, "init", ident.name, "--c-m", repr(axis.c_m), "--out", cfg.name],
                              cwd=folder, capture_output=True, text=True)  # fmt: skip
@@ -235,7 +259,7 @@ def print_table(summary: dict[str, dict], wall: float) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(20)))
-    ap.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
+    ap.add_argument("--models", nargs="+", choices=MODELS + DIAGNOSTICS, default=list(MODELS))
     ap.add_argument("--duration", type=float, default=30.0, help="seconds per record")
     ap.add_argument(
         "--out", type=Path, default=None, help="a new or empty folder (default: a fresh temp dir)"
@@ -244,12 +268,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--disturbance", type=float, default=0.02,
                     help="torque disturbance std as a fraction of the axis's Coulomb level, "
                     "low-passed at 10 Hz (the built-in rig's: 0.02); 0 = none")  # fmt: skip
+    ap.add_argument("--bandwidth", type=float, default=10.0,
+                    help="the disturbance's first-order low-pass [Hz]; 0 = white (held per "
+                    "sample)")  # fmt: skip
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="extra `torchfric train --set` for every run (repeatable)")  # fmt: skip
     args = ap.parse_args(argv)
     for model, (name, axis) in AXES.items():
         AXES[model] = (name, dataclasses.replace(
-            axis, disturbance_std=args.disturbance * axis.coulomb, disturbance_bandwidth=10.0))  # fmt: skip
+            axis, disturbance_std=args.disturbance * axis.coulomb,
+            disturbance_bandwidth=args.bandwidth))  # fmt: skip
     out = args.out or Path(tempfile.mkdtemp(prefix="torchfric-coverage-"))
     out.mkdir(parents=True, exist_ok=True)
     taken = [f"seed{s:02d}/run_{m}" for s in args.seeds for m in args.models
@@ -270,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         for job in as_completed(jobs):
             rows.extend(job.result())
     wall = time.perf_counter() - t0
-    rows.sort(key=lambda r: (MODELS.index(r["model"]), r["seed"]))
+    rows.sort(key=lambda r: ((MODELS + DIAGNOSTICS).index(r["model"]), r["seed"]))
     keys = list(dict.fromkeys(k for r in rows for k in r))
     with open(out / "coverage.csv", "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=keys)
@@ -280,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "coverage.json").write_text(json.dumps(
         {"command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
          "seeds": args.seeds, "duration": args.duration, "sets": args.set, "nominal": NOMINAL,
-         "disturbance": args.disturbance,
+         "disturbance": args.disturbance, "bandwidth": args.bandwidth,
          "accept": ACCEPT, "fractions_of_p95_speed": FRACTIONS, "wall_seconds": round(wall, 1),
          "models": summary}, indent=2, default=str) + "\n")  # fmt: skip
     print_table(summary, wall)
