@@ -11,7 +11,16 @@ import os
 
 from .errors import TorchfricError
 
-__all__ = ["available_memory", "ekf_bytes", "prefit_bytes", "require_memory", "format_bytes"]
+__all__ = [
+    "available_memory",
+    "ekf_bytes",
+    "prefit_bytes",
+    "require_memory",
+    "format_bytes",
+    "run_peak_bytes",
+    "run_seconds",
+    "nominal_rate",
+]
 
 # Buffers of n×n float64 one filter member keeps alive in a step: P, Φ and the RK4 stages of
 # Ṗ, the Jacobian, the Joseph update's temporaries (counted on the eager step; the compiled
@@ -21,6 +30,56 @@ _EKF_SQUARES = 16
 # normal equations' temporaries.
 _PREFIT_ROWS = 4
 _PREFIT_STARTS = 3
+
+
+# `run_peak_bytes` and `run_seconds`: measured on the 20-minute axis record at 1 kHz (1.2 M
+# samples, tanh(3): k = 8, the 9-filter ensemble; benchmarks/long_record.py, docs/results.md).
+# The process before any record: Python, torch, the generated C, TensorBoard's writer.
+_PROCESS = 410 << 20
+# Bytes a sample each record costs for the whole run: t, u, q, q̇ and the filter's y (N, 2).
+_RECORD = 48
+# Bytes a sample of the largest stage over the longest record, per unit: the pre-fit per start
+# and parameter (its Jacobian rows), the ensemble's selection per member (its open-loop
+# simulation and the FIT's differences), and the covariance stage (the fixed-θ innovations
+# and their variances, the record's sensitivities `(N, k)` per parameter, two filters' outputs).
+_PREFIT_ROW = 16.0
+_SELECTION_MEMBER = 58.0
+_COVARIANCE_FIXED, _COVARIANCE_PARAMETER = 96.0, 20.0
+# Filter-step equivalents a sample of the stages after the passes, per the ensemble's
+# member-step rate: the noise model (63 fixed-θ filters in one batch), the sandwich and the
+# polish (2k + 1 single filters per Newton step, two steps and their line searches as
+# measured) and the selection's simulations.
+_AFTER_PASSES = 150.0
+
+
+def run_peak_bytes(*, samples: int, longest: int, n_theta: int, members: int) -> int:
+    """The peak resident memory of a `train` run, roughly (within ~15 % on the axis records of
+    2 and 20 minutes): the process, every record (`samples` in all) and the largest stage over
+    the `longest` record: the pre-fit (3 starts), the selection of `members` filters by
+    simulation, or the covariance stage with `n_theta` parameters. The passes themselves hold
+    nothing per sample."""
+    stage = max(
+        _PREFIT_STARTS * n_theta * _PREFIT_ROW,
+        members * _SELECTION_MEMBER,
+        _COVARIANCE_FIXED + n_theta * _COVARIANCE_PARAMETER,
+    )
+    return int(_PROCESS + _RECORD * samples + stage * longest)
+
+
+def nominal_rate(members: int) -> float:
+    """Member-steps a second of the default model's filters where none were timed: one filter
+    300 k samples/s, an ensemble 150 k a member (generated C, 2 busy cores; `torchfric check`
+    times this machine's instead)."""
+    return 3e5 if members == 1 else 1.5e5 * members
+
+
+def run_seconds(*, samples: int, passes: int, members: int, rate: float) -> tuple[float, float]:
+    """The seconds of an EKF run's filtering after its pre-fit: ``(after one pass, after all
+    `passes`)`` at `rate` member-steps a second (the ensemble's, measured): the passes of
+    `members` filters over `samples`, and the stages after them (`_AFTER_PASSES`)."""
+    after = _AFTER_PASSES * samples / rate
+    per_pass = members * samples / rate
+    return after + per_pass, after + passes * per_pass
 
 
 def format_bytes(n: float) -> str:

@@ -14,6 +14,7 @@ import argparse
 import os
 import pathlib
 import shlex
+import time
 
 import torch
 
@@ -21,9 +22,18 @@ from ...data import DEFAULT_CUTOFF_HZ, Experiment
 from ...data.units import si_unit
 from ...errors import TorchfricError
 from ...models.arm import ArmModel
+from ...resources import format_bytes
 from ..artifacts import next_run_dir
 from ..config import Config
-from ..run import candidate_sizes, check_resources, config_model, initial_model, load_data
+from ..run import (
+    RunEstimate,
+    candidate_sizes,
+    check_resources,
+    config_model,
+    estimate_run,
+    initial_model,
+    load_data,
+)
 from ..run import sized as with_size
 from .columns import rpm
 
@@ -164,8 +174,10 @@ def _estimator_lines(cfg: Config, samples: int) -> list[str]:
     ]
 
 
-def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
-    """Check `cfg` as `train` does before it starts, writing nothing; what would run, as text.
+def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = False) -> str:
+    """Check `cfg` as `train` does before it starts, writing nothing; what would run, as text,
+    with the run's time and peak memory (`timed`: the filter's rate timed here, as ``check``
+    does; else its nominal rate).
 
     Raises `TorchfricError` (one line naming the problem and its fix) for bad data, a model too
     large for this machine, a failing pre-fit or an ``out_dir`` that cannot hold a run. The
@@ -178,7 +190,9 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
     one = with_size(cfg, max(candidate_sizes(cfg))) if cfg.model.size == "auto" else cfg
     base = config_model(one, train)
     check_resources(one, train, base)
+    t_start = time.perf_counter()
     start, init_kind = initial_model(one, train, base)
+    t_start = time.perf_counter() - t_start
     run = _run_dir(cfg)
     d = cfg.data
     lines = [
@@ -202,10 +216,35 @@ def check_run(cfg: Config, warnings: list[str] | None = None) -> str:
         lines.append(_line("reading", f"q in {_q_unit(cfg)}, {span}, input delay {d.input_delay}"))
     lines += _model_lines(cfg, base, start, init_kind)
     lines += _estimator_lines(cfg, sum(e.n for e in train))
+    lines += _estimate_lines(estimate_run(one, train, start, timed=timed), t_start, init_kind)
     lines += [_line("warning", w) for w in found]
     if warnings is not None:
         warnings.extend(found)
     return "\n".join(lines)
+
+
+def _minutes(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
+def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str) -> list[str]:
+    """The run's time (the starting point as measured here, the filter at a rate timed here)
+    and its peak memory (`torchfric.resources.run_peak_bytes`)."""
+    start = f"{'pre-fit' if init_kind == 'prefit' else 'start'} {_minutes(start_s)}"
+    if est.seconds is None or est.rate is None:
+        time_text = f"not estimated for this estimator; the {start}"
+    else:
+        low, high = est.seconds
+        time_text = (
+            f"about {_minutes(start_s + low)} (one pass) to {_minutes(start_s + high)} (every "
+            f"pass): the {start} as here, then the filters' passes at {est.rate / 1e6:.2g} M "
+            f"filter steps/s ({'timed here' if est.timed else 'nominal'}) and the covariance"
+        )
+    free = "" if est.available is None else f"; {format_bytes(est.available)} available"
+    return [
+        _line("time", time_text),
+        _line("memory", f"about {format_bytes(est.peak)} at peak{free}"),
+    ]
 
 
 def _q_unit(cfg: Config) -> str:
@@ -242,7 +281,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from ..config import Config
 
     cfg = Config.load(args.config, list(args.set or []))
-    print(check_run(cfg))
+    print(check_run(cfg, timed=True))
     sets = "".join(f" --set {shlex.quote(s)}" for s in args.set or [])
     train = f"torchfric train {shlex.quote(args.config)}{sets}"
     print(f"ok          nothing written; train with: {train}")

@@ -3,7 +3,8 @@
 - `launch`: `fit` (``train`` as one Python call), torch's settings for a run, progress on
   stderr;
 - `runner`: `train` (data → initial model → estimator with observers → checkpoint);
-- `inputs`: the config's data → experiments, resource checks, the initial model;
+- `inputs`: the config's data → experiments, resource checks, the initial model, the
+  estimate of a run's time and memory;
 - `autosize`: ``model.size = "auto"``, sizes tried before the run proper;
 - `confidence`: the kept θ's covariance (prediction-error sandwich) and identifiability;
 - `assessment`: scores and warnings of a finished model;
@@ -25,7 +26,8 @@ _LAZY: dict[str, str] = {
     ),
     **dict.fromkeys(["TrainResult", "train"], "runner"),
     **dict.fromkeys(
-        ["check_resources", "config_model", "initial_model", "load_data", "load_record"],
+        ["check_resources", "config_model", "initial_model", "load_data", "load_record",
+         "RunEstimate", "estimate_run"],
         "inputs",
     ),
     **dict.fromkeys(["candidate_sizes", "choose_size", "sized"], "autosize"),

@@ -4,12 +4,15 @@
 (a record that gaps or missing values cut as its segments); `load_record` reads one whole
 record, for ``torchfric evaluate``/``simulate``/``track``; `check_resources` refuses a run too large
 for this machine before anything is written; `config_model` and `initial_model` build the model
-the estimator starts from.
+the estimator starts from; `estimate_run` gives the time and peak memory ``check`` prints.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import time
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -17,10 +20,19 @@ import torch
 from ...data import Experiment, data_warnings, load_segments, make_experiment
 from ...data.velocity import settling_samples
 from ...errors import MissingColumn, TorchfricError
+from ...estimators.observers import Callback
 from ...estimators.prefit import prefit
 from ...models.arm import ArmModel
 from ...models.friction import make_friction
-from ...resources import ekf_bytes, prefit_bytes, require_memory
+from ...resources import (
+    available_memory,
+    ekf_bytes,
+    nominal_rate,
+    prefit_bytes,
+    require_memory,
+    run_peak_bytes,
+    run_seconds,
+)
 from ..artifacts import load_checkpoint, sha256_file
 from ..config import RIG_PREFIX, Config
 
@@ -30,6 +42,8 @@ __all__ = [
     "check_resources",
     "config_model",
     "initial_model",
+    "RunEstimate",
+    "estimate_run",
 ]
 
 
@@ -231,3 +245,81 @@ def initial_model(
             f"has {base.theta_names}; use the same model.friction, model.size and terms"
         )
     return warm, f"checkpoint:{init}"
+
+
+@dataclass(frozen=True)
+class RunEstimate:
+    """What a run will cost, before it runs: ``seconds`` (after one pass, after every pass; None
+    for output error) of the filtering after the pre-fit at ``rate`` member-steps a second
+    (``timed`` here, else `torchfric.resources.nominal_rate`), with ``members`` filters, and its
+    ``peak`` resident bytes (``available``: what this machine has free, None when it does not
+    say)."""
+
+    seconds: tuple[float, float] | None
+    rate: float | None
+    timed: bool
+    members: int
+    peak: int
+    available: int | None
+
+
+class _Clock(Callback):
+    """The times of a pass's progress reports (samples done, seconds)."""
+
+    def __init__(self) -> None:
+        self.marks: list[tuple[int, float]] = []
+
+    def on_progress(self, pass_index: int, samples_done: int, samples_total: int) -> None:
+        self.marks.append((samples_done, time.perf_counter()))
+
+    def rate(self) -> float | None:
+        """Samples a second between the first report and the last (none: None)."""
+        if len(self.marks) < 2 or self.marks[-1][1] <= self.marks[0][1]:
+            return None
+        (n0, t0), (n1, t1) = self.marks[0], self.marks[-1]
+        return (n1 - n0) / (t1 - t0)
+
+
+def _step_rate(cfg: Config, model: ArmModel, train: list[Experiment], members: int) -> float | None:
+    """Member-steps a second of the configured filters on this machine: one pass of `members`
+    filters (the run's ensemble, or one) over the first 5000 samples of the longest record,
+    timed between its progress reports, so that building or loading the compiled step does not
+    count. None when the timing fails (a filter that diverges there)."""
+    from ...estimators.ensemble import identify_ekf_ensemble
+    from ...estimators.settings import EnsembleSpec
+
+    exp = max(train, key=lambda e: e.n)
+    part = exp.slice(0, min(exp.n, 5000))
+    est = cfg.estimator
+    spec = est.ensemble_spec(cfg.seed) if est.ensemble > 0 else EnsembleSpec(members=1)
+    tuning = dataclasses.replace(est.ekf_tuning(), passes=1)
+    clock = _Clock()
+    try:
+        identify_ekf_ensemble(model, [part], tuning, spec, callback=clock, progress_every=500)
+    except TorchfricError:
+        return None
+    rate = clock.rate()
+    return None if rate is None else rate * members
+
+
+def estimate_run(
+    cfg: Config, train: list[Experiment], model: ArmModel, *, timed: bool = False
+) -> RunEstimate:
+    """The time and peak memory of a run of `cfg` on `train` from `model` (`RunEstimate`; the
+    memory from `torchfric.resources.run_peak_bytes`, the time from `run_seconds` at the
+    filter's rate: with `timed`, one short pass timed here (a second or two; the first time
+    also builds the compiled step that the run then finds), else the nominal rate)."""
+    est = cfg.estimator
+    ekf = est.method == "ekf"
+    members = (est.ensemble_spec(cfg.seed).size if est.ensemble > 0 else 1) if ekf else 1
+    samples = sum(e.n for e in train)
+    peak = run_peak_bytes(samples=samples, longest=max(e.n for e in train),
+                          n_theta=model.num_parameters, members=members)  # fmt: skip
+    measured = _step_rate(cfg, model, train, members) if ekf and timed else None
+    rate = measured or (nominal_rate(members) if ekf else None)
+    seconds = (
+        None
+        if rate is None
+        else run_seconds(samples=samples, passes=est.passes, members=members, rate=rate)
+    )
+    return RunEstimate(seconds, rate, measured is not None, members, peak, available_memory())

@@ -16,6 +16,8 @@ The run's whole list of observers is built in `torchfric.app.run.views.run_obser
 
 from __future__ import annotations
 
+import os
+import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TextIO
@@ -41,6 +43,7 @@ __all__ = [
     "fit_text",
     "ensemble_spread",
     "best_member_loglik",
+    "bar_size",
 ]
 
 Printer = Callable[[str], None]
@@ -85,6 +88,22 @@ def ensemble_spread(model: ArmModel, state: dict[str, Any]) -> tuple[dict[str, i
     inertia = sorted(float(model.split(state["thetas"][i])[1]["inertia"]) for i in ok)
     counts = {s: status.count(s) for s in sorted(set(status))}
     return counts, inertia
+
+
+def bar_size(stream: Any) -> tuple[int, int] | None:
+    """None when `stream` is a terminal that reports its size (tqdm follows it as it changes),
+    else the columns and rows to draw bars in: ``COLUMNS`` and ``LINES``, else 80 × 24. A
+    pseudo-terminal opened without a size (``script``, an IDE's console, ``docker run -t``)
+    reports 0 × 0: tqdm then draws no bar (0 columns), and under ``script``, which gives it
+    −1 rows, hides every bar: no rate, no ETA, only the lines after each pass."""
+    try:
+        size = os.get_terminal_size(stream.fileno())
+        if size.columns > 0 and size.lines > 0:
+            return None
+    except (AttributeError, OSError, ValueError):  # no file descriptor, or not a terminal
+        pass
+    fallback = shutil.get_terminal_size()
+    return fallback.columns, fallback.lines
 
 
 class ValidationScores(Callback):
@@ -180,7 +199,11 @@ class ProgressLines(Callback):
     def _bar(self, **kwargs: Any) -> Any:
         from tqdm import tqdm
 
-        return tqdm(file=self.bars, dynamic_ncols=True, mininterval=0.2, **kwargs)
+        size = bar_size(self.bars)
+        shape: dict[str, Any] = (
+            {"dynamic_ncols": True} if size is None else {"ncols": size[0], "nrows": size[1]}
+        )
+        return tqdm(file=self.bars, mininterval=0.2, **shape, **kwargs)
 
     def _advance(self, index: int, unit: str, total: int, postfix: str) -> None:
         """Move the passes (or epochs) bar to `index` of `total` and show `postfix`."""
