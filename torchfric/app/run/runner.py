@@ -21,7 +21,7 @@ import torch
 from ...data import Experiment
 from ...errors import RunInterrupted, TorchfricError
 from ...estimators.ensemble import identify_ekf_ensemble
-from ...estimators.identify import PassRecord, identify_ekf
+from ...estimators.identify import EKFResult, PassRecord, identify_ekf
 from ...estimators.metrics import SimulationScore
 from ...estimators.observers import Callback, CallbackList, RunEnd, RunStart
 from ...estimators.output_error import identify_output_error
@@ -97,12 +97,19 @@ def _run_ekf(
     result = identify_ekf(
         model, train_exps, cfg.estimator.ekf_tuning(), callback=obs.callbacks, start=start
     )
+    return _kept(cfg, result, obs, sum(r.seconds for r in result.history), {})
+
+
+def _kept(
+    cfg: Config, result: EKFResult, obs: _Watch, seconds: float, more: dict[str, Any]
+) -> _Outcome:
+    """The pass a filter's (or the kept member's) `result` keeps (`kept_pass`), its estimator
+    state, and the run's extra metrics (`more` and the filter's samples per second)."""
     kept, extra = kept_pass(
         result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
     )
-    extra["samples_per_second"] = sum(r.samples for r in result.history) / max(
-        sum(r.seconds for r in result.history), 1e-9
-    )
+    extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
+    extra.update(more)
     return kept.model, kept_payload(kept, extra), extra
 
 
@@ -149,15 +156,10 @@ def _run_ensemble(
         f"{summary['status'].get('diverged', 0)} of {len(ens.members)} members diverged; "
         f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
     )
-    result = ens.result
-    extra_scales = (best.q_scale, best.r_scale)  # the kept member's tuning, for its covariance
-    obs.callbacks.on_ensemble_end(result)
-    kept, extra = kept_pass(
-        result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
-    )
-    extra["samples_per_second"] = sum(r.samples for r in result.history) / max(ens.seconds, 1e-9)
-    extra["ensemble"], extra["tuning_scales"] = summary, extra_scales
-    return kept.model, kept_payload(kept, extra), extra
+    obs.callbacks.on_ensemble_end(ens.result)
+    # the kept member's tuning scales: its covariance is computed under them
+    more = {"ensemble": summary, "tuning_scales": (best.q_scale, best.r_scale)}
+    return _kept(cfg, ens.result, obs, ens.seconds, more)
 
 
 def _run_output_error(
