@@ -104,6 +104,7 @@ def compile_step(
     members: bool = False,
     member_consts: Sequence[bool] = (),
     key: str | None = None,
+    device: torch.device | None = None,
 ) -> Step:
     """`eager` as a compiled `Step`: one sample through `compile_with_fallback`, and `size`
     samples per call through `make_chunk`.
@@ -112,14 +113,14 @@ def compile_step(
     state (threaded from sample to sample) and whose others are the sample's outputs. Both
     compile on the first call, once per process and model; if compilation fails for any reason
     the eager function is used from then on — same arithmetic. `options`, `native`, `members`,
-    `member_consts` and `key` are `make_chunk`'s."""
+    `member_consts`, `key` and `device` are `make_chunk`'s."""
 
     def one(*args: Tensor):  # type: ignore[no-untyped-def]
         out = eager(*args)
         return tuple(out[:carry]), tuple(out[carry:])
 
     scan = make_chunk(one, options=options, native=native, members=members,
-                      member_consts=member_consts, key=key)  # fmt: skip
+                      member_consts=member_consts, key=key, device=device)  # fmt: skip
     return Step(eager, compile_with_fallback(eager), scan, size)
 
 
@@ -145,6 +146,7 @@ def make_chunk(
     members: bool = False,
     member_consts: Sequence[bool] = (),
     key: str | None = None,
+    device: torch.device | None = None,
 ) -> Callable:
     """`fn` applied along chunks of samples as one compiled call, with an eager fallback.
 
@@ -163,9 +165,20 @@ def make_chunk(
     later process then finds its generated code without tracing) are `make_native_chunk`'s (for ensembles:
     `fn` is then the batched step, which the native path traces for one member; the Inductor
     and eager paths call it on the whole batch). The returned function's `.path` says which
-    path ran last: "native", "inductor" or "eager".
+    path ran last: "cuda", "native", "inductor" or "eager".
+
+    With a CUDA `device` (ensembles only: `members`, no per-sample outputs), the chunk first
+    runs as the generated step on that GPU (`torchfric.accel.native.cuda`: one member per
+    thread; the carry comes back on the device); where that path cannot run, the CPU paths
+    above take over, announced once (`NativeCacheWarning`).
     """
     inductor = _inductor_chunk(fn, options)
+    if device is not None and device.type == "cuda":
+        from .native.cuda import on_device
+
+        cpu = make_chunk(fn, options=options, native=native, members=members,
+                         member_consts=member_consts, key=key)  # fmt: skip
+        return on_device(fn, member_consts, device, cpu)
     if not native:
         return _tagged(inductor)
     from .native import NativeUnavailable, make_native_chunk

@@ -63,6 +63,13 @@ def _add_train(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quiet", action="store_true", help="no progress on stderr (the result still prints)"
     )
+    p.add_argument(
+        "--device",
+        default=None,
+        metavar="DEVICE",
+        help='cuda (or cuda:N): filter ensembles and model.size = "auto" on that GPU, one '
+        "member per GPU thread, for big batches; default: the CPU",
+    )
 
 
 def _add_evaluate(sub: argparse._SubParsersAction) -> None:

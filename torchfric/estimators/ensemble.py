@@ -1,28 +1,28 @@
 """Ensembles of the iterative EKF: many starts and tunings filtered in one vectorised pass.
 
-The paper warns that "the filter tuning is mainly based on experience and trial and error" and
-that "parameter divergence can occur". An ensemble answers both at the cost of roughly one filter:
-K members, differing in their initial θ (every entry scaled by a log-uniform factor in
-``[1/spread, spread]``, member 0 the start itself) and in the tuning's scale (Q and R times
-factors from a grid), run through the same per-sample step as one batch: generated C by default
-(four members per SIMD vector), else `torch.func.vmap` of the step compiled once.
+The paper warns that "the filter tuning is mainly based on experience and trial and error" and that
+"parameter divergence can occur". An ensemble answers both at the cost of roughly one filter: K
+members, differing in their initial θ (every entry scaled by a log-uniform factor in ``[1/spread,
+spread]``, member 0 the start itself) and in the tuning's scale (Q and R times factors from a
+grid), run through the same per-sample step as one batch: generated C by default (four members per
+SIMD vector), else `torch.func.vmap` of the step compiled once; on a CUDA device, the generated
+step with one member per GPU thread.
 
-Each member is an independent iterative off-line EKF exactly as in `identify_ekf`: the same
-passes, per-experiment state reset, per-member early stop on the θ tolerance and per-member
-rollback of a pass that lowers its innovation log-likelihood. A member whose belief becomes
-unhealthy (NaN, negative variance, θ out of the box) is frozen at its last good pass and marked
-diverged; the others carry on. No per-sample host synchronisation: health flags are folded into
-masks on the device and read once per stretch.
+Each member is an independent iterative off-line EKF exactly as in `identify_ekf`: the same passes,
+per-experiment state reset, per-member early stop on the θ tolerance and per-member rollback of a
+pass that lowers its innovation log-likelihood. A member whose belief becomes unhealthy (NaN,
+negative variance, θ out of the box) is frozen at its last good pass and marked diverged; the
+others carry on. No per-sample host synchronisation: health flags are folded into masks on the
+device and read once per stretch.
 
-After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇
-FIT of an open-loop simulation (all members simulated as one batch), averaged over the
-validation experiments and, with equal weight, over the training experiments (the training
-experiments alone when no validation data are given) — and the spread of all members' results
-is reported: a cheap measure of how trustworthy the identification is (`selection`).
+After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇ FIT of
+an open-loop simulation (all members simulated as one batch), averaged over the validation
+experiments and, with equal weight, over the training experiments (the training experiments alone
+when no validation data are given) — and the spread of all members' results is reported: a cheap
+measure of how trustworthy the identification is (`selection`).
 
 Why this size: the batch's one pass loop, its stretch masks and its selection call must change
-together; the pass ledger and the selection are already apart (`passes`, `selection`).
-"""
+together; the pass ledger and the selection are already apart (`passes`, `selection`)."""
 
 from __future__ import annotations
 
@@ -82,12 +82,9 @@ __all__ = [
 def random_thetas(
     model: ArmModel, theta0: Tensor, count: int, spread: float, generator: torch.Generator
 ) -> Tensor:
-    """`(count, k)` random starts around θ₀ (estimation coordinates); row 0 is θ₀ itself.
-
-    Log-stored entries move by ``U(−ln s, ln s)``; linear entries are multiplied by
-    ``exp(U(−ln s, ln s))`` (sign kept). Either way the physical value is scaled by a log-uniform
-    factor in ``[1/s, s]``.
-    """
+    """`(count, k)` random starts around θ₀ (estimation coordinates); row 0 is θ₀ itself. Log-stored
+    entries move by ``U(−ln s, ln s)``; linear entries are multiplied by ``exp(U(−ln s, ln s))``
+    (sign kept): either way the physical value is scaled by a log-uniform factor in ``[1/s, s]``."""
     theta0 = theta0.detach().to(torch.float64).reshape(-1)
     k = theta0.numel()
     shift = (2.0 * torch.rand(count, k, generator=generator, dtype=torch.float64) - 1.0) * math.log(
@@ -144,6 +141,7 @@ def make_masked_step(
     chunk: int = CHUNK,
     mm: MatMul | None = None,
     native: bool = True,
+    device: torch.device | None = None,
 ) -> Step:
     """`make_batched_step` plus the ensemble's per-sample bookkeeping, as one function (one
     compiled graph, so the masking costs no extra per-sample dispatch):
@@ -158,7 +156,8 @@ def make_masked_step(
     valid (C,), (dt, Q, H, R, bound))`` returns the seven state tensors after the chunk's valid
     samples (and no per-sample outputs). With `native` (the default) that chunk is generated C
     (`torchfric.native`: one member traced, four per SIMD vector, split across the cores); else,
-    or when that path cannot translate the model, the Inductor scan of the vmapped step."""
+    or when that path cannot translate the model, the Inductor scan of the vmapped step. A CUDA
+    `device`: first the generated step on that GPU, one member per thread (`make_chunk`)."""
     batched = make_batched_step(model, substeps, mm=mm)
     mm = batched.mm  # type: ignore[attr-defined]  # the filter's product (`matmul_for` by default)
     key = step_key("ensemble masked step", batched.key)  # type: ignore[attr-defined]
@@ -189,7 +188,7 @@ def make_masked_step(
     # member axis, and of the constants Q and R do.
     return compile_step(masked, carry=7, size=chunk, options=chunk_options(mm), native=native,
                         members=True, member_consts=(False, True, False, True, False),
-                        key=key)  # fmt: skip
+                        key=key, device=device)  # fmt: skip
 
 
 def _keep_good(
@@ -311,6 +310,7 @@ def identify_ekf_ensemble(
     callback: Callback | None = None,
     start: dict[str, Any] | None = None,
     progress_every: int = 2000,
+    device: torch.device | None = None,
 ) -> EnsembleResult:
     """Run K iterative EKFs as one batch and keep the best member.
 
@@ -326,6 +326,7 @@ def identify_ekf_ensemble(
         callback: a `Callback` (`EnsembleCallback`) for progress and per-pass snapshots.
         start: a state passed to `Callback.on_ensemble_pass_end`: continue after that pass
             (the result equals an uninterrupted run's).
+        device: a CUDA device filters the members there (the selection stays on the CPU).
 
     Returns:
         `EnsembleResult`; `.result` is the kept member as an `EKFResult` with its pass history.
@@ -341,7 +342,7 @@ def identify_ekf_ensemble(
     Q, P0_xx, H, R = tuning.matrices(k, model.state_size)
     Qk, Rk = Q * q_scale[:, None, None], R * r_scale[:, None, None]
     P_theta = tuning.initial_P_theta(model, thetas)
-    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
+    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile, device=device)
     data = measured_data(exps, tuning.measure)
     total = sum(e.n for e in exps)
     f = Filtering(
@@ -440,7 +441,7 @@ def _filter_rest(
             carry = f.step_fn(*carry, index[j], u[j - 1], y[j], *consts)
             if j % f.every == 0:
                 f.callback.on_progress(p, offset + j, f.total)
-    return carry
+    return tuple(c.cpu() for c in carry)  # a GPU chunk's carry stays there until here
 
 
 def _finish(

@@ -142,6 +142,7 @@ def compare_sizes(
     *,
     callback: Callback | None = None,
     progress_every: int = 2000,
+    device: torch.device | None = None,
 ) -> SizingResult:
     """Identify each size's model from its start and choose the size by BIC (module docstring).
 
@@ -153,6 +154,7 @@ def compare_sizes(
         spec: the ensemble's grid (each size runs every start and tuning of it); None: one
             filter per size under `tuning`.
         callback: `Callback.on_progress` inside each pass.
+        device: a CUDA device filters the batch there (`make_masked_step`); None: the CPU.
 
     Raises:
         TorchfricError: no sizes, or every filter of every size diverged.
@@ -172,7 +174,7 @@ def compare_sizes(
     scores: list[SizeScore] = []
     for model, group in groups:
         members = _members(model, {s: starts[s] for s in group}, tuning, spec)
-        f = _filtering(model, exps, tuning, members, callback, progress_every)
+        f = _filtering(model, exps, tuning, members, callback, progress_every, device)
         ledger = _train(model, tuning, members, f)
         ll = _fixed_loglik(model, tuning, ledger, f)
         scores += [_score(s, starts[s], members, ledger, ll, samples) for s in group]
@@ -239,12 +241,14 @@ def _filtering(
     members: _Members,
     callback: Callback,
     every: int,
+    device: torch.device | None = None,
 ) -> Filtering:
-    """The batch's `Filtering`: each member's Q and R scaled, the masked batched step."""
+    """The batch's `Filtering`: each member's Q and R scaled, the masked batched step (on
+    `device` when given)."""
     Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     Qk = Q * members.q_scale[:, None, None]
     Rk = R * members.r_scale[:, None, None]
-    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
+    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile, device=device)
     data = measured_data(exps, tuning.measure)
     total = sum(e.n for e in exps)
     return Filtering(data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, every, total)

@@ -3,7 +3,9 @@
 `_source` traces the per-sample function, evaluates it on symbols (`aten._evaluate`) and emits
 one C function ``torchfric_chunk(m0, m1, K, C, p)`` that runs samples 0…C−1 of members m0…m1−1:
 one member at a time in scalar code (`_scalar_program`), or, for ensembles without per-sample
-outputs, `_LANES` members per SIMD vector (`_vector_program`, GCC vector types).
+outputs, `_LANES` members per SIMD vector (`_vector_program`, GCC vector types). The scalar
+program also has a CUDA form (``target="cuda"``): the same statements in a kernel whose threads
+are the members (`torchfric.accel.native.cuda`).
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ def _source(
     fixed: Sequence[dict[int, float]] = (),
     *,
     members: bool = False,
+    target: str = "c",
 ) -> tuple[str, list[tuple[int, ...]], list[torch.dtype], int]:
     """C source of the chunk loop; also the per-sample shapes and dtypes of the outputs and the
     members per vector (1: scalar code).
@@ -86,7 +89,8 @@ def _source(
     Tensors arrive per member (batched ones with their member axis at size 1). `fixed[i]`
     maps flat entries of const i to the values they are compiled in as (`_structure`). With
     `members` and no per-sample outputs, the code runs `_LANES` members at once in SIMD
-    vectors (`_vector_program`); otherwise one member at a time (`_scalar_program`)."""
+    vectors (`_vector_program`); otherwise one member at a time (`_scalar_program`). With
+    ``target="cuda"``, the scalar program as a CUDA kernel (one member per thread)."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
     n_c, n_x = len(carry), len(xs)
@@ -133,6 +137,8 @@ def _source(
             "generated code serves"
         )
     io = _IO(carry, xs, consts, member_consts, out_shapes, out_dtypes)
+    if target == "cuda":
+        return _scalar_program(graph, order, outputs, io, cuda=True), out_shapes, out_dtypes, 1
     if members and not out_shapes:
         return _vector_program(graph, order, outputs, io), out_shapes, out_dtypes, _LANES
     return _scalar_program(graph, order, outputs, io), out_shapes, out_dtypes, 1
@@ -180,6 +186,24 @@ def _needed(graph: _Graph, outputs: list[tuple[Any, Scalar, str]]) -> list[int]:
 _HEADER = ["#include <math.h>", "#include <stdint.h>", ""]
 _SIGNATURE = "void torchfric_chunk(int64_t m0, int64_t m1, int64_t K, int64_t C, void **p) {"
 _COMPARE = ("<", "<=", ">", ">=", "==", "!=")
+# The CUDA form (NVRTC has no C library headers: its maths functions are built in): the same
+# names, the member loop a grid-stride loop over the threads.
+_CUDA_HEADER = [
+    "typedef long long int64_t;",
+    "typedef unsigned char uint8_t;",
+    "#define INFINITY __longlong_as_double(0x7ff0000000000000LL)",
+    "#define NAN __longlong_as_double(0x7ff8000000000000LL)",
+    "",
+]
+_CUDA_SIGNATURE = (
+    'extern "C" __global__ void torchfric_chunk(int m0_, int m1_, int K_, int C_, void **p) {\n'
+    "  const int64_t m0 = m0_, m1 = m1_, K = K_, C = C_;"
+)
+_MEMBER_LOOP = "  for (int64_t m = m0; m < m1; ++m) {"
+_CUDA_MEMBER_LOOP = (
+    "  for (int64_t m = m0 + (int64_t)blockIdx.x * blockDim.x + threadIdx.x; m < m1;\n"
+    "       m += (int64_t)gridDim.x * blockDim.x) {"
+)
 
 
 def _scalar_expr(graph: _Graph, i: int) -> str:
@@ -220,9 +244,13 @@ def _scalar_expr(graph: _Graph, i: int) -> str:
     raise NativeUnavailable(f"no C form for {op}")  # pragma: no cover - every op has a case
 
 
-def _scalar_program(graph: _Graph, order: list[int], outputs: list, io: _IO) -> str:
-    """One member at a time: the step as scalar statements inside the loop over samples."""
-    lines = [*_HEADER, _SIGNATURE, *io.pointers(), "  for (int64_t m = m0; m < m1; ++m) {"]
+def _scalar_program(
+    graph: _Graph, order: list[int], outputs: list, io: _IO, *, cuda: bool = False
+) -> str:
+    """One member at a time: the step as scalar statements inside the loop over samples (with
+    `cuda`, a kernel: one member per thread)."""
+    head = [*_CUDA_HEADER, _CUDA_SIGNATURE] if cuda else [*_HEADER, _SIGNATURE]
+    lines = [*head, *io.pointers(), _CUDA_MEMBER_LOOP if cuda else _MEMBER_LOOP]
     for i, ((_, ctype), size) in enumerate(io.carry):
         lines += [
             f"    {ctype} *c{i} = c{i}_base + m * {size};",

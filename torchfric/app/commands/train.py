@@ -26,7 +26,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     try:
         result = train_on_stderr(
             cfg, out=args.out, resume=args.resume, overwrite=args.overwrite,
-            checkpoint=args.checkpoint, quiet=args.quiet,
+            checkpoint=args.checkpoint, quiet=args.quiet, device=args.device,
         )  # fmt: skip
     except RunInterrupted as stop:
         if stop.run_dir is not None:

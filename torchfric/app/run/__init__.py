@@ -26,7 +26,7 @@ _LAZY: dict[str, str] = {
     ),
     **dict.fromkeys(["TrainResult", "train"], "runner"),
     **dict.fromkeys(
-        ["check_resources", "config_model", "initial_model", "load_data", "load_record",
+        ["check_resources", "config_model", "device_named", "initial_model", "load_data", "load_record",
          "RunEstimate", "estimate_run"],
         "inputs",
     ),

@@ -48,11 +48,15 @@ def choose_size(
 
 
 def choose_size_and_start(
-    cfg: Config, train: list[Any], say: Callable[[str], None] | None = None
+    cfg: Config,
+    train: list[Any],
+    say: Callable[[str], None] | None = None,
+    *,
+    device: Any = None,
 ) -> tuple[Config, dict[str, Any] | None, tuple[Any, str] | None]:
     """`choose_size`, and the chosen size's start (`initial_model`'s model and kind, already
     built for the comparison, so a run need not pre-fit it again); None when ``model.size`` is
-    an integer.
+    an integer. `device`: a CUDA `torch.device` filters the sizes there (None: the CPU).
 
     Raises `TorchfricError` before any filter runs when a size's model or the batch of all
     sizes' filters does not fit in memory, and when every filter of every size diverges."""
@@ -84,7 +88,7 @@ def choose_size_and_start(
         f'  model.size = "auto": {cfg.model.friction} sizes {listed} ({per_size} filter(s) '
         f"each, {how}); the lowest BIC on the identification data's innovations is kept"
     )
-    result = compare_sizes(models, train, est.ekf_tuning(), spec).to_dict()
+    result = compare_sizes(models, train, est.ekf_tuning(), spec, device=device).to_dict()
     result["friction"] = cfg.model.friction
     for line in size_lines(result):
         say("  " + line)

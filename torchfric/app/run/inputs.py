@@ -37,6 +37,7 @@ from ..artifacts import load_checkpoint, sha256_file
 from ..config import RIG_PREFIX, Config
 
 __all__ = [
+    "device_named",
     "load_record",
     "load_data",
     "check_resources",
@@ -145,6 +146,34 @@ def load_data(
     if not groups[0]:
         raise TorchfricError("data.train is empty: give at least one identification file")
     return groups[0], groups[1], groups[2], prints
+
+
+def device_named(name: str | None) -> torch.device | None:
+    """The `torch.device` a run's filters use (``--device``): None for the CPU (the default);
+    ``"cuda"`` or ``"cuda:N"`` when torch sees that GPU, else a `TorchfricError` naming the fix
+    (checked before the run writes anything)."""
+    if name is None or name == "cpu":
+        return None
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise TorchfricError(
+            f"--device {name!r} is not a device; use cpu, cuda or cuda:N"
+        ) from None
+    if device.type != "cuda":
+        raise TorchfricError(f"--device {name!r}: only cpu and cuda (cuda:N) are supported")
+    if not torch.cuda.is_available():
+        raise TorchfricError(
+            f"--device {name}: this torch ({torch.__version__}) sees no CUDA GPU. Fix: leave "
+            "--device out (the CPU), or run where torch.cuda.is_available() is True"
+        )
+    index = device.index or 0
+    if index >= torch.cuda.device_count():
+        raise TorchfricError(
+            f"--device {name}: torch sees {torch.cuda.device_count()} CUDA device(s); use "
+            f"cuda:0 … cuda:{torch.cuda.device_count() - 1}"
+        )
+    return torch.device("cuda", index)
 
 
 def check_resources(cfg: Config, train: list[Experiment], model: ArmModel) -> None:

@@ -97,6 +97,7 @@ def fit(
     overwrite: bool = False,
     checkpoint: str | os.PathLike[str] | None = None,
     quiet: bool = False,
+    device: str | None = None,
     **overrides: Any,
 ) -> TrainResult:
     """Identify a model from a config, as ``torchfric train`` does: the same defaults, the same
@@ -108,6 +109,8 @@ def fit(
         out: the run directory (``--out``); resume: an interrupted run to continue
             (``--resume``); overwrite, checkpoint: as ``--overwrite`` and ``--checkpoint``.
         quiet: no progress on stderr (``--quiet``).
+        device: ``"cuda"`` (``--device``) filters ensembles and ``model.size = "auto"`` on
+            the GPU; None: the CPU.
         **overrides: config keys, as ``--set`` does: a section as a dict
             (``estimator={"passes": 3}``), dotted keys (``**{"estimator.passes": 3}``) or
             top-level keys (``name="trial"``). Paths are relative to the working directory.
@@ -133,8 +136,9 @@ def fit(
         )
     with torch_settings():
         return train_on_stderr(
-            cfg, out=out, resume=resume, overwrite=overwrite, checkpoint=checkpoint, quiet=quiet
-        )
+            cfg, out=out, resume=resume, overwrite=overwrite, checkpoint=checkpoint, quiet=quiet,
+            device=device,
+        )  # fmt: skip
 
 
 def train_on_stderr(
@@ -145,6 +149,7 @@ def train_on_stderr(
     overwrite: bool = False,
     checkpoint: str | os.PathLike[str] | None = None,
     quiet: bool = False,
+    device: str | None = None,
 ) -> TrainResult:
     """`torchfric.app.run.runner.train` with the CLI's progress on stderr (bars on a terminal,
     lines elsewhere, nothing when `quiet`): what ``torchfric train`` and `fit` both run."""
@@ -159,4 +164,5 @@ def train_on_stderr(
         checkpoint=checkpoint,
         say=progress_printer(quiet, bars),
         bars=sys.stderr if bars else None,
+        device=device,
     )

@@ -39,7 +39,7 @@ from ..config import Config
 from .assessment import evaluate_model, provenance, result_warnings, scoring_engine
 from .autosize import choose_size_and_start
 from .confidence import attach_covariance, attach_oe_covariance
-from .inputs import check_resources, config_model, initial_model, load_data
+from .inputs import check_resources, config_model, device_named, initial_model, load_data
 from .monitors import Printer, ValidationScores
 from .outcome import kept_pass, kept_payload, parameter_table
 from .snapshots import (
@@ -80,6 +80,7 @@ class _Watch:
     scores: ValidationScores
     callbacks: CallbackList
     say: Printer
+    device: torch.device | None = None  # where an ensemble filters (None: the CPU)
 
 
 def _run_ekf(
@@ -94,6 +95,7 @@ def _run_ekf(
     if cfg.estimator.ensemble > 0 or isinstance(est, EnsembleResume):
         return _run_ensemble(cfg, model, train_exps, obs, est, run)
     start = est.start if isinstance(est, EKFResume) else None
+    _on_cpu(obs, "the single filter")
     result = identify_ekf(
         model, train_exps, cfg.estimator.ekf_tuning(), callback=obs.callbacks, start=start
     )
@@ -111,6 +113,15 @@ def _kept(
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
     extra.update(more)
     return kept.model, kept_payload(kept, extra), extra
+
+
+def _on_cpu(obs: _Watch, what: str) -> None:
+    """The note that `what` runs on the CPU although ``--device`` names a GPU."""
+    if obs.device is not None:
+        obs.say(
+            f"  note: {what} runs on the CPU; --device {obs.device} serves ensembles "
+            '(estimator.ensemble > 0) and model.size = "auto"'
+        )
 
 
 def _scales(scales: tuple[float, ...]) -> str:
@@ -144,6 +155,7 @@ def _run_ensemble(
         validation=obs.scores.validation,
         callback=obs.callbacks,
         start=est.state if isinstance(est, EnsembleResume) else None,
+        device=obs.device,
     )
     summary = ens.summary()
     (run / "ensemble.json").write_text(
@@ -172,6 +184,7 @@ def _run_output_error(
 ) -> _Outcome:
     """Output-error training by gradient descent through the simulation."""
     resume = est if isinstance(est, OEResume) else None
+    _on_cpu(obs, "output error")
     result = identify_output_error(
         model,
         train_exps,
@@ -223,6 +236,7 @@ def train(
     say: Printer | None = None,
     bars: TextIO | None = None,
     callbacks: tuple[Callback, ...] = (),
+    device: str | None = None,
 ) -> TrainResult:
     """Run the configured identification end to end; returns the fitted model and metrics.
 
@@ -234,8 +248,10 @@ def train(
     uninterrupted run's). Ctrl-C raises `RunInterrupted` naming the run to resume. `say`
     prints the progress lines (default: stderr); `bars` is a stream for tqdm progress bars
     (a terminal; default none); `callbacks`: more `Callback`s, called after the run's own.
+    `device`: ``"cuda"`` filters ensembles and ``model.size = "auto"`` on the GPU (`device_named`).
     """
     say = say or _default_say
+    on = device_named(device)  # an unusable device is refused before anything is written
     torch.manual_seed(cfg.seed)
     default = pathlib.Path(cfg.out_dir) / cfg.name
     explicit = pathlib.Path(run_dir) if run_dir is not None else None
@@ -243,7 +259,7 @@ def train(
     if checkpoint is not None:
         checkpoint = pathlib.Path(checkpoint)
         _check_checkpoint_target(checkpoint)
-    run = _Run(cfg, say, time.perf_counter(), saved, bars)
+    run = _Run(cfg, say, time.perf_counter(), saved, bars, on)
     run.prepare()
     claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)
     with locked(*([claim.replaces] if claim.replaces else []), claim.path):
@@ -277,16 +293,19 @@ class _Run:
         t_start: float,
         saved: dict[str, Any] | None,
         bars: TextIO | None = None,
+        device: torch.device | None = None,
     ) -> None:
         self.cfg, self.say, self.t_start, self.saved = cfg, say, t_start, saved
-        self.bars = bars
+        self.bars, self.device = bars, device
         self.warnings: list[str] = []
 
     def prepare(self) -> None:
         """Load the data, size "auto", check memory and build the initial model (not on resume)."""
         cfg = self.cfg
         self.train, self.val, self.test, self.fingerprints = load_data(cfg, warnings=self.warnings)
-        cfg, self.sizes, start = choose_size_and_start(cfg, self.train, self.say)  # size "auto"
+        cfg, self.sizes, start = choose_size_and_start(  # model.size = "auto"
+            cfg, self.train, self.say, device=self.device
+        )
         base = config_model(cfg, self.train)
         check_resources(cfg, self.train, base)
         resume = self.saved is not None
@@ -371,7 +390,7 @@ class _Run:
             snapshot_info=(self.fingerprints, self.init_kind, self.initial_inertia),
             extra=callbacks,
         )  # fmt: skip
-        return _Watch(scores, observers, self.say)
+        return _Watch(scores, observers, self.say, self.device)
 
     def _metrics(
         self,
