@@ -315,7 +315,6 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
             [estimator]
             passes = 2
             tolerance = 0
-            compile = false
             ensemble = 3
             ensemble_q_scales = [1.0, 10.0]
             ensemble_r_scales = [1.0]
