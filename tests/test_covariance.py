@@ -579,3 +579,35 @@ def test_damped_steps_ascend_and_shorten_towards_the_gradient() -> None:
     newton = torch.linalg.solve(info, grad)
     away = [float((s - newton).norm() / newton.norm()) for s in steps]
     assert away == sorted(away) and away[0] < 0.1
+
+
+def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """`pem_refine` on a quadratic ℓ whose optimum lies beyond half the θ box (where a run
+    flags a parameter "at a bound"): every step it takes stays inside and still raises ℓ; with
+    a box that holds the optimum, the same steps reach it."""
+    from types import SimpleNamespace
+
+    from torchfric.estimators import covariance
+
+    info = torch.tensor([[4.0, 1.0], [1.0, 2.0]], dtype=torch.float64)
+    best = torch.tensor([0.5, 30.0], dtype=torch.float64)
+
+    def loglik(theta):  # type: ignore[no-untyped-def]
+        d = theta - best
+        return float(-0.5 * d @ info @ d)
+
+    def at(theta):  # type: ignore[no-untyped-def]
+        grad = -info @ (theta - best)
+        newton = torch.linalg.solve(info, grad)
+        return SimpleNamespace(theta=theta, loglik=loglik(theta), gradient=grad, newton=newton,
+                               information=info, cov=torch.linalg.inv(info))  # fmt: skip
+
+    monkeypatch.setattr(covariance, "pem_covariance", lambda m, e, t, theta, **kw: at(theta))
+    monkeypatch.setattr(covariance, "_loglik", lambda m, e, t, theta, q, r: loglik(theta))
+    start = torch.tensor([0.0, 1.0], dtype=torch.float64)
+    for bound, reaches in ((1e6, True), (20.0, False)):
+        tuning = EKFTuning(theta_bound=bound)
+        theta, _, trace = covariance.pem_refine(None, [], tuning, start, iterations=8)
+        assert trace == sorted(trace) and len(trace) > 1  # every step taken raised ℓ
+        assert bool((theta.abs() < 0.5 * bound).all())
+        assert bool(torch.allclose(theta, best)) is reaches

@@ -454,7 +454,11 @@ def pem_refine(
     3.3–6 σ off (the pseudo-inverse step leans on the curve's poorly determined directions,
     where ℓ is far from quadratic), while the seeds whose steps were taken ended within 2 σ.
     It stops when the step's expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ`` falls below `min_gain` nats,
-    when no trial raises ℓ, or after `iterations`.
+    when no trial raises ℓ, or after `iterations`. A trial that puts any |θ| at half the
+    filter's box (``tuning.theta_bound``, where a run reports the parameter "at a bound") is not
+    taken: along a direction the data barely see (a tanh neuron's slope saturating into a step)
+    ℓ keeps rising by rounding-sized amounts, and one run of the rig's LuGre config walked there
+    in 8 steps where a start 1e-10 away stopped after 2.
 
     `start`: the covariance at `theta` when the caller has it already (not computed again).
 
@@ -471,6 +475,8 @@ def pem_refine(
         halved = [fraction * cov.newton for fraction in (1.0, 0.5, 0.25, 0.125, 0.0625)]
         for step in [*halved, *_damped_steps(cov)]:
             candidate = theta + step
+            if bool((candidate.abs() >= 0.5 * tuning.theta_bound).any()):
+                continue
             ll = _loglik(model, experiments, tuning, candidate, q_scale, r_scale)
             if ll > better:
                 trial, better = candidate, ll
