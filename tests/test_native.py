@@ -306,9 +306,10 @@ def test_default_chunk_size_is_served_natively() -> None:
     assert step.chunk.path == "native"
 
 
-def test_members_with_per_sample_outputs_run_one_at_a_time() -> None:
-    """Member mode with per-sample outputs takes the scalar program; the outputs are stacked
-    `(C, K, ...)` as the scan of the batched function stacks them."""
+def test_members_with_per_sample_outputs_stack_them_as_the_scan_does() -> None:
+    """Member mode with per-sample outputs (the SIMD program, stored lane by lane; K = 3 leaves
+    one lane of the vector unused): the outputs are stacked `(C, K, ...)` as the scan of the
+    batched function stacks them, each member's equal to its own loop."""
 
     def fn(x, u, a):  # type: ignore[no-untyped-def]
         x1 = torch.tanh(a * x) + u

@@ -31,6 +31,7 @@ __all__ = [
     "PEMCovariance",
     "identifiability",
     "long_run_covariance",
+    "score_sums",
 ]
 
 CORRELATION_LIMIT = 0.99
@@ -268,3 +269,31 @@ def _inverse(information: Tensor) -> Tensor:
     inv_e = torch.where(keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0)
     inv_scaled = (evecs * inv_e) @ evecs.T
     return inv_scaled / (d[:, None] * d[None, :])
+
+
+def score_sums(
+    base: list[tuple[Tensor, Tensor]],
+    De: list[Tensor],
+    block: int | None,
+) -> tuple[Tensor, list[Tensor], list[int], float, int]:
+    """From the innovations at θ and their sensitivities `De` (`covariance._sensitivities`): the
+    information, the block scores and each block's experiment, ``−½ V`` and the sample count
+    (`torchfric.estimators.covariance.pem_covariance`). Taken block by block: no per-sample
+    score array of the whole record."""
+    k = De[0].shape[1]
+    info = torch.zeros(k, k, dtype=torch.float64)
+    block_scores: list[Tensor] = []
+    segment: list[int] = []
+    loglik, samples = 0.0, 0
+    size = block or max(1, sum(int(e.numel()) for e, _ in base) // BLOCKS)
+    for i, (e, S) in enumerate(base):
+        # V = Σ e²/S with the weights 1/S held (the filter's S depends on θ only through P):
+        # per sample the score −e ∂e / S and the Gauss–Newton information ∂eᵀ∂e / S
+        for eb, Sb, Db in zip(torch.split(e, size), torch.split(S, size), torch.split(De[i], size),
+                              strict=True):  # fmt: skip
+            block_scores.append((-(eb / Sb)[:, None] * Db).sum(0))
+            info += (Db / Sb[:, None]).T @ Db
+            segment.append(i)
+        loglik += float(-0.5 * (e * e / S).sum())
+        samples += e.numel()
+    return info, block_scores, segment, loglik, samples

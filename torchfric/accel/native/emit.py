@@ -2,8 +2,8 @@
 
 `_source` traces the per-sample function, evaluates it on symbols (`aten._evaluate`) and emits
 one C function ``torchfric_chunk(m0, m1, K, C, p)`` that runs samples 0…C−1 of members m0…m1−1:
-one member at a time in scalar code (`_scalar_program`), or, for ensembles without per-sample
-outputs, `_LANES` members per SIMD vector (`_vector_program`, GCC vector types). The scalar
+one member at a time in scalar code (`_scalar_program`), or, for ensembles, `_LANES` members per
+SIMD vector (`_vector_program`, GCC vector types). The scalar
 program also has a CUDA form (``target="cuda"``): the same statements in a kernel whose threads
 are the members (`torchfric.accel.native.cuda`).
 """
@@ -88,8 +88,8 @@ def _source(
 
     Tensors arrive per member (batched ones with their member axis at size 1). `fixed[i]`
     maps flat entries of const i to the values they are compiled in as (`_structure`). With
-    `members` and no per-sample outputs, the code runs `_LANES` members at once in SIMD
-    vectors (`_vector_program`); otherwise one member at a time (`_scalar_program`). With
+    `members`, the code runs `_LANES` members at once in SIMD vectors (`_vector_program`);
+    otherwise one member at a time (`_scalar_program`). With
     ``target="cuda"``, the scalar program as a CUDA kernel (one member per thread)."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
@@ -139,7 +139,7 @@ def _source(
     io = _IO(carry, xs, consts, member_consts, out_shapes, out_dtypes)
     if target == "cuda":
         return _scalar_program(graph, order, outputs, io, cuda=True), out_shapes, out_dtypes, 1
-    if members and not out_shapes:
+    if members:
         return _vector_program(graph, order, outputs, io), out_shapes, out_dtypes, _LANES
     return _scalar_program(graph, order, outputs, io), out_shapes, out_dtypes, 1
 
@@ -364,7 +364,8 @@ def _vector_cast(v: str, src: str, dst: str) -> str:
 def _vector_program(graph: _Graph, order: list[int], outputs: list, io: _IO) -> str:
     """`_LANES` members at once: each carry and member constant is loaded into vectors (lane
     l = member m + l; a missing last member repeats its neighbour and is not stored), the
-    samples run on those vectors, and the carry is stored back at the end of the chunk."""
+    samples run on those vectors, each per-sample output is stored lane by lane, and the carry
+    is stored back at the end of the chunk."""
     w = _LANES
     vt = {"d": "vd", "i": "vi", "b": "vi"}
     lines = [*_HEADER, *_vector_prelude(w), "", _SIGNATURE, *io.pointers()]
@@ -411,6 +412,15 @@ def _vector_program(graph: _Graph, order: list[int], outputs: list, io: _IO) -> 
             src = "bi(-1)" if value else "bi(0)"
         else:
             src = f"bd({_literal(value, 'd')})" if dt == "d" else f"bi({_literal(value, 'i')})"
+        if name[0] == "o":  # a per-sample output: each real lane to its member's slot
+            size = io.outs[int(name[1:])][1]
+            cast = f"({io.outs[int(name[1:])][0][1]})"
+            lane = "(o_v[l] & 1)" if dt == "b" else "o_v[l]"
+            lines.append(
+                f"      {{ const {vt[dt]} o_v = {src}; for (int l = 0; l < {w} && m + l < m1; ++l) "
+                f"o{name[1:]}_base[(t * K + m + l) * {size} + {j}] = {cast}{lane}; }}"
+            )
+            continue
         lines.append(f"      N{name[1:]}[{j}] = {src};")
     lines.append("      if (valid[t]) {")
     for i, (_, size) in enumerate(io.carry):
