@@ -172,13 +172,13 @@ def make_chunk(
     thread; the carry comes back on the device); where that path cannot run, the CPU paths
     above take over, announced once (`NativeCacheWarning`).
     """
-    inductor = _inductor_chunk(fn, options)
     if device is not None and device.type == "cuda":
         from .native.cuda import on_device
 
         cpu = make_chunk(fn, options=options, native=native, members=members,
                          member_consts=member_consts, key=key)  # fmt: skip
         return on_device(fn, member_consts, device, cpu)
+    inductor = _inductor_chunk(fn, options)
     if not native:
         return _tagged(inductor)
     from .native import NativeUnavailable, make_native_chunk

@@ -114,17 +114,39 @@ def _structure(k: Tensor, batched: bool) -> dict[int, float]:
     return out
 
 
+def _cores() -> int:
+    """The CPU cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def _threads(members: int) -> int:
     """Threads for `members` independent filters: one per core this process may use (members
     never share data, so the result does not depend on the count), or
     ``$TORCHFRIC_NATIVE_THREADS``. Independent of torch's own thread pool, which the CLI keeps
     at one for its tiny tensors."""
     env = os.environ.get("TORCHFRIC_NATIVE_THREADS")
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(members, int(env) if env else cores))
+    return max(1, min(members, int(env) if env else _cores()))
+
+
+class _Structures:
+    """`_structure` of a call's consts, read again only when they change: a record's chunks
+    pass the same consts, and reading their structure at every call was 5 % of a long run. The
+    last consts are held (so their ids stay theirs) with their versions."""
+
+    def __init__(self) -> None:
+        self.last: tuple[tuple, tuple, list] | None = None
+
+    def __call__(self, consts: tuple, batched: Sequence[bool]) -> list[dict[int, float]]:
+        marks = tuple(k._version for k in consts)
+        last = self.last
+        if last is not None and last[1] == marks and all(map(operator.is_, last[0], consts)):
+            return last[2]
+        fixed = [_structure(k, b) for k, b in zip(consts, batched, strict=True)]
+        self.last = (consts, marks, fixed)
+        return fixed
 
 
 # A call that takes less than this on one thread is not split: starting, joining and handing
@@ -295,9 +317,7 @@ def make_native_chunk(
     _enabled()  # a bad value is the user's error: said when the step is made, not mid-run
     built: dict[tuple, _Built] = {}
     failed: dict[tuple, NativeUnavailable] = {}
-    # the last call's consts (held, so their ids stay theirs), versions and 0/1 structure: a
-    # record's chunks pass the same consts, and reading their structure was 5 % of a long run
-    last: list[tuple[tuple, tuple, list]] = []
+    structures = _Structures()
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
         if not _enabled():
@@ -307,12 +327,7 @@ def make_native_chunk(
         flags = tuple(member_consts) + (False,) * (len(consts) - len(member_consts))
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
-        marks = tuple(k._version for k in consts)
-        if last and last[0][1] == marks and all(map(operator.is_, last[0][0], consts)):
-            fixed = last[0][2]
-        else:
-            fixed = [_structure(k, members and f) for k, f in zip(consts, flags, strict=True)]
-            last[:] = [(consts, marks, fixed)]
+        fixed = structures(consts, [members and f for f in flags])
         shape = _shape_key(carry, xs, consts, flags, fixed, members)
         if shape in failed:  # this shape was tried: the same reason, without tracing again
             raise failed[shape]

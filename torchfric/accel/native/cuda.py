@@ -18,7 +18,6 @@ device, no NVRTC, a step that cannot be translated) raises `NativeUnavailable`, 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Sequence
 
 import torch
@@ -42,11 +41,9 @@ MEMBERS_PER_CORE = 48
 
 def gpu_worth_it(members: int) -> bool:
     """Whether `members` filters run faster on the GPU than on this process's CPU cores."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return members >= MEMBERS_PER_CORE * cores
+    from . import _cores
+
+    return members >= MEMBERS_PER_CORE * _cores()
 
 
 def _kernel(fn: Callable, carry: tuple, xs: tuple, consts: tuple, flags: tuple, fixed: list):
@@ -95,11 +92,12 @@ def make_cuda_chunk(
     `member_consts` too; no per-sample outputs), run on the CUDA `device`. The carry comes back
     on the device; inputs may be on the CPU or the device. Raises `NativeUnavailable` (before
     launching anything) when this path cannot run the step."""
-    from . import _shape_key, _structure
+    from . import _shape_key, _Structures
 
     built: dict[tuple, Callable] = {}
     failed: dict[tuple, NativeUnavailable] = {}
     resident = _Resident(device)
+    structures = _Structures()
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]
         if not torch.cuda.is_available():
@@ -107,9 +105,9 @@ def make_cuda_chunk(
         carry, xs, consts = tuple(carry), tuple(xs), tuple(consts)
         flags = tuple(member_consts) + (False,) * (len(consts) - len(member_consts))
         K, C = carry[0].shape[0], valid.shape[0]
-        # the 0/1 structure is read on the CPU, from the tensors as given (consts usually are)
-        host = tuple(k.detach().cpu() for k in consts)
-        fixed = [_structure(k, f) for k, f in zip(host, flags, strict=True)]
+        # the 0/1 structure is read on the CPU (consts usually are there: `.cpu()` is then them)
+        host = tuple(k if k.device.type == "cpu" else k.detach().cpu() for k in consts)
+        fixed = structures(host, flags)
         shape = _shape_key(carry, xs, host, flags, fixed, True)
         if shape in failed:
             raise failed[shape]
