@@ -10,12 +10,12 @@ import re
 import select
 import subprocess
 import sys
-import textwrap
 import time
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from rig_configs import rig_config
 
 from torchfric.app.commands.check import check_run
 from torchfric.app.config import Config
@@ -29,25 +29,11 @@ ETA = re.compile(r"<\d\d:\d\d")  # [00:01<00:04, ...]: elapsed < remaining
 
 
 def _config(tmp: pathlib.Path) -> pathlib.Path:
-    cfg = tmp / "short.toml"
-    cfg.write_text(
-        textwrap.dedent(
-            f"""
-            name = "short"
-            out_dir = "{(tmp / "runs").as_posix()}"
-            [data]
-            train = ["rig:identification"]
-            stop = 1500
-            [model]
-            c_m = 16.0
-            [estimator]
-            ensemble = 0
-            passes = 2
-            tolerance = 0
-            """
-        )
-    )
-    return cfg
+    """A short single-filter run of the rig's identification record, nothing held out."""
+    return rig_config(
+        tmp, "short", data={"stop": 1500, "validation": None},
+        estimator={"passes": 2, "tolerance": 0},
+    )  # fmt: skip
 
 
 def _read_all(fd: int, proc: subprocess.Popen[bytes], timeout: float) -> str:
