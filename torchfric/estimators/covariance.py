@@ -39,12 +39,13 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.func import vmap
 
 from ..accel import Step, iter_chunks, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from .ekf import MEASUREMENTS, EKFState
+from .ekf import MEASUREMENTS, EKFState, update
 from .ensemble import _first_sample, make_batched_step, make_masked_step
 from .observers import Callback
 from .passes import Filtering, initial_belief, measured_data
@@ -186,7 +187,6 @@ def innovations(
             channels measured.
     """
     from ..accel import iter_chunks as chunks
-    from .ekf import update
 
     if len(MEASUREMENTS[tuning.measure]) != 1:
         raise TorchfricError(
@@ -205,16 +205,13 @@ def innovations(
     out = []
     for exp, u, y in measured_data(list(experiments), tuning.measure):
         x, P = initial_belief(exp, thetas, torch.zeros(K, k, k, dtype=torch.float64), P0_xx)
-        first = [update(EKFState(x[i], P[i]), y[0], H, Rk[i]) for i in range(K)]
-        x = torch.stack([st.x for st, _ in first])
-        P = torch.stack([st.P for st, _ in first])
         # the per-sample outputs go straight into arrays of the record's length (no list of a
         # chunk's tensors to concatenate: 25 bytes a sample and filter at most, then e and S)
         e_t, ll_t, nis_t = (torch.empty(exp.n, K, dtype=torch.float64) for _ in range(3))
         ok_t = torch.ones(exp.n, K, dtype=torch.bool)
-        e_t[0] = torch.stack([inn.e.reshape(()) for _, inn in first])
-        ll_t[0] = torch.stack([inn.loglik for _, inn in first])
-        nis_t[0] = torch.stack([inn.nis for _, inn in first])
+        x, P, e_t[0], ll_t[0], nis_t[0] = vmap(_first_update, in_dims=(0, 0, None, None, 0))(
+            x, P, y[0], H, Rk
+        )
         consts = (torch.tensor(exp.dt, dtype=torch.float64), Qk, H, Rk, bound)
         if step.chunk is not None:
             for i, n, xs, valid in chunks((u[:-1], y[1:]), step.size):
@@ -237,6 +234,12 @@ def innovations(
         e_t[:, bad] = math.nan
         out.append((e_t[:, 0], S[:, 0]) if one else (e_t, S))
     return out
+
+
+def _first_update(x: Tensor, P: Tensor, y0: Tensor, H: Tensor, R: Tensor) -> tuple[Tensor, ...]:
+    """Sample 0 of a fixed-θ filter: the measurement update alone (x, P, e, ℓ, NIS)."""
+    state, inn = update(EKFState(x, P), y0, H, R)
+    return state.x, state.P, inn.e.reshape(()), inn.loglik, inn.nis
 
 
 def _fixed_theta_step(model: ArmModel, tuning: EKFTuning) -> Step:
@@ -452,8 +455,8 @@ def pem_refine(
     the σ describe the spread of that maximum, so they can only cover the truth from there.
     Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (the pseudo-inverse of `_inverse`:
     directions the data do not determine are not moved), whole or halved up to four times,
-    whichever first raises ℓ (the five filtered as one batch); when none does, Levenberg–Marquardt steps
-    ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`). The fallback was measured:
+    whichever first raises ℓ (the five filtered as one batch); when none does,
+    Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`). The fallback was measured:
     on a Coulomb axis the full and halved steps failed on 6 of 20 seeds, all 6 left with M
     3.3–6 σ off (the pseudo-inverse step leans on the curve's poorly determined directions,
     where ℓ is far from quadratic), while the seeds whose steps were taken ended within 2 σ.
