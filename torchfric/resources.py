@@ -41,10 +41,11 @@ _RECORD = 48
 # Bytes a sample of the largest stage over the longest record, per unit: the pre-fit per start
 # and parameter (its Jacobian rows), the ensemble's selection per member (its open-loop
 # simulation and the FIT's differences), and the covariance stage (the fixed-θ innovations
-# and their variances, the record's sensitivities `(N, k)` per parameter, two filters' outputs).
+# and their variances, the record's sensitivities `(N, k)` per parameter, and the per-sample
+# outputs of one batch of 8 sensitivity filters: e, ℓ, NIS and ok, 25 bytes each).
 _PREFIT_ROW = 16.0
 _SELECTION_MEMBER = 58.0
-_COVARIANCE_FIXED, _COVARIANCE_PARAMETER = 96.0, 20.0
+_COVARIANCE_FIXED, _COVARIANCE_PARAMETER = 246.0, 20.0
 # Filter-step equivalents a sample of the stages after the passes, per the ensemble's
 # member-step rate: the noise model (63 fixed-θ filters in one batch), the sandwich and the
 # polish (2k + 1 single filters per Newton step, two steps and their line searches as
