@@ -48,7 +48,7 @@ _SELECTION_MEMBER = 58.0
 _COVARIANCE_FIXED, _COVARIANCE_PARAMETER = 246.0, 20.0
 # Filter-step equivalents a sample of the stages after the passes, per the ensemble's
 # member-step rate: the noise model (63 fixed-θ filters in one batch), the sandwich and the
-# polish (2k + 1 single filters per Newton step, two steps and their line searches as
+# polish (2k + 1 fixed-θ filters per Newton step, 8 to a batch, and its batched trial steps, as
 # measured) and the selection's simulations.
 _AFTER_PASSES = 150.0
 
