@@ -42,7 +42,7 @@ _RECORD = 48
 # and parameter (its Jacobian rows), the ensemble's selection per member (its open-loop
 # simulation and the FIT's differences), and the covariance stage (the fixed-θ innovations
 # and their variances, the record's sensitivities `(N, k)` per parameter, and the per-sample
-# outputs of one batch of 8 sensitivity filters: e, ℓ, NIS and ok, 25 bytes each).
+# outputs of a batch of 8 filters: the polish's trial steps, e, S and e²/S, 24 bytes each).
 _PREFIT_ROW = 16.0
 _SELECTION_MEMBER = 58.0
 _COVARIANCE_FIXED, _COVARIANCE_PARAMETER = 246.0, 20.0

@@ -8,8 +8,8 @@ measured channel:
 
 1. `noise_model`: the Q and R factors under which the fixed-θ filter's innovations are most
    likely (a grid, one batch of the ensemble's compiled masked step).
-2. `innovations`: per sample the innovation ``e_t(θ)`` and its variance ``S_t(θ)`` (the
-   single filter's compiled step; ``S_t`` from its NIS and log-likelihood outputs).
+2. `innovations`: per sample the innovation ``e_t(θ)`` and its variance ``S_t(θ)`` (a batch of
+   fixed-θ filters, four per SIMD vector; ``S_t`` from their NIS and log-likelihood outputs).
 3. `pem_covariance`: the criterion ``V(θ) = Σ_t e_t²/S_t``; sensitivities ``∂e_t/∂θ`` by central
    differences of 2k + 1 filters; per-sample scores, the Gauss–Newton information
    ``I = Σ ∂eᵀ∂e / S`` (positive semi-definite by construction), the long-run covariance J of
@@ -20,10 +20,9 @@ measured channel:
 4. `pem_refine`: Gauss–Newton steps on V from the kept θ to the prediction-error estimate,
    whose spread that covariance describes.
 
-`tests/test_covariance.py` checks the innovations, the information, the gradient, the Newton
-step and the score covariance against a 2-state EKF written from scratch and differentiated by
-autograd. Directions the data cannot separate show up as a near-singular ``I``; they are named
-by `identifiability`.
+`tests/test_covariance.py` checks all of it against a 2-state EKF written from scratch and
+differentiated by autograd. Directions the data cannot separate show up as a near-singular
+``I``; `identifiability` names them.
 
 Why this size: the innovations, their sensitivities and the sums over them stream a long
 record block by block together; the statistics they feed are apart (`sandwich`).
@@ -173,6 +172,7 @@ def innovations(
     q_scale: float = 1.0,
     r_scale: float = 1.0,
     lenient: bool = False,
+    variances: bool = True,
 ) -> list[tuple[Tensor, Tensor]]:
     """Per experiment, the one-step innovations ``e_t`` and their variances ``S_t`` of the
     fixed-θ filter (θ held by ``P_θθ = 0``) with one measured channel (`tuning.measure`
@@ -181,6 +181,8 @@ def innovations(
     (`make_batched_step`: compiled, four filters per SIMD vector of the generated C, split
     across the cores; ``S_t = exp(−2 ℓ_t − NIS_t − ln 2π)``, exact for one channel); each
     filter's numbers are those of its own single filter (the same arithmetic).
+
+    Without `variances`, S is not kept (an empty tensor in its place).
 
     Raises:
         TorchfricError: a filter failed at its θ (with `lenient`, its e is NaN instead), or two
@@ -205,35 +207,40 @@ def innovations(
     out = []
     for exp, u, y in measured_data(list(experiments), tuning.measure):
         x, P = initial_belief(exp, thetas, torch.zeros(K, k, k, dtype=torch.float64), P0_xx)
-        # the per-sample outputs go straight into arrays of the record's length (no list of a
-        # chunk's tensors to concatenate: 25 bytes a sample and filter at most, then e and S)
-        e_t, ll_t, nis_t = (torch.empty(exp.n, K, dtype=torch.float64) for _ in range(3))
-        ok_t = torch.ones(exp.n, K, dtype=torch.bool)
-        x, P, e_t[0], ll_t[0], nis_t[0] = vmap(_first_update, in_dims=(0, 0, None, None, 0))(
-            x, P, y[0], H, Rk
-        )
+        # e, and S = exp(−2ℓ − NIS − ln 2π) chunk by chunk, straight into arrays of the record's
+        # length (16 bytes a sample and filter, 8 without `variances`)
+        e_t = torch.empty(exp.n, K, dtype=torch.float64)
+        S_t = torch.empty(exp.n, K, dtype=torch.float64) if variances else None
+        x, P, e0, ll0, nis0 = vmap(_first_update, in_dims=(0, 0, None, None, 0))(x, P, y[0], H, Rk)
+        bad = _keep(e_t, S_t, 0, 1, e0[None], ll0[None], nis0[None], None)
         consts = (torch.tensor(exp.dt, dtype=torch.float64), Qk, H, Rk, bound)
         if step.chunk is not None:
             for i, n, xs, valid in chunks((u[:-1], y[1:]), step.size):
                 (x, P), (e, nis, ll, ok) = step.chunk((x, P), xs, valid, consts)
-                e_t[1 + i : 1 + i + n], ok_t[1 + i : 1 + i + n] = e[:n, :, 0], ok[:n]
-                ll_t[1 + i : 1 + i + n], nis_t[1 + i : 1 + i + n] = ll[:n], nis[:n]
+                bad |= _keep(e_t, S_t, 1 + i, n, e[:n, :, 0], ll[:n], nis[:n], ok[:n])
         else:
             for j in range(1, exp.n):
                 x, P, e, nis, ll, ok = step(x, P, u[j - 1], y[j], *consts)
-                e_t[j], ll_t[j], nis_t[j], ok_t[j] = e[:, 0], ll, nis, ok
-        bad = ~ok_t[1:].all(0) | ~torch.isfinite(ll_t).all(0)
+                bad |= _keep(e_t, S_t, j, 1, e[None, :, 0], ll[None], nis[None], ok[None])
         if bool(bad.any()) and not lenient:
             raise TorchfricError(
                 f"the fixed-θ filter failed on {exp.name!r} at this θ, so the likelihood has no "
                 "derivatives there"
             )
-        del ok_t
-        # S = exp(−2ℓ − NIS − ln 2π), in place of ℓ
-        S = ll_t.mul_(-2.0).sub_(nis_t).sub_(math.log(2.0 * math.pi)).exp_()
         e_t[:, bad] = math.nan
+        S = S_t if S_t is not None else e_t[:0]
         out.append((e_t[:, 0], S[:, 0]) if one else (e_t, S))
     return out
+
+
+def _keep(e_t: Tensor, S_t: Tensor | None, at: int, n: int, e: Tensor, ll: Tensor,
+          nis: Tensor, ok: Tensor | None) -> Tensor:  # fmt: skip
+    """Samples ``at …`` (`n`) of the filters' e into `e_t`, S into `S_t`; `(K,)` which failed."""
+    e_t[at : at + n] = e
+    if S_t is not None:
+        S_t[at : at + n] = ll.mul(-2.0).sub_(nis).sub_(math.log(2.0 * math.pi)).exp_()
+    failed = ~torch.isfinite(ll).all(0)
+    return failed if ok is None else failed | ~ok.all(0)
 
 
 def _first_update(x: Tensor, P: Tensor, y0: Tensor, H: Tensor, R: Tensor) -> tuple[Tensor, ...]:
@@ -243,8 +250,7 @@ def _first_update(x: Tensor, P: Tensor, y0: Tensor, H: Tensor, R: Tensor) -> tup
 
 
 def _fixed_theta_step(model: ArmModel, tuning: EKFTuning) -> Step:
-    """The batched fixed-θ step with per-sample outputs (e, NIS, ℓ, ok), made once per model
-    structure and tuning (`_STEPS`)."""
+    """The batched fixed-θ step with per-sample outputs (e, NIS, ℓ, ok), made once (`_STEPS`)."""
     from ..accel import compile_step, step_key
 
     key = (structure_key(model), tuning.substeps, tuning.compile)
@@ -346,7 +352,7 @@ def _sensitivities(run: Any, theta: Tensor, h: Tensor) -> list[Tensor]:
     for j0 in range(0, k, _GROUP):
         cols = range(j0, min(k, j0 + _GROUP))
         steps = torch.stack([h[j] * _unit(k, j) for j in cols])
-        parts = run(torch.cat([theta + steps, theta - steps]))
+        parts = run(torch.cat([theta + steps, theta - steps]), variances=False)
         if not De:
             De = [torch.empty(e.shape[0], k, dtype=torch.float64) for e, _ in parts]
         g = len(cols)
@@ -356,8 +362,7 @@ def _sensitivities(run: Any, theta: Tensor, h: Tensor) -> list[Tensor]:
     return De
 
 
-# Parameters whose ± filters run in one batch: 8 filters, two SIMD vectors of the generated C.
-_GROUP = 4
+_GROUP = 4  # parameters whose ± filters run in one batch: 8 filters, two SIMD vectors
 
 
 def _loglik(
@@ -368,8 +373,7 @@ def _loglik(
     q_scale: float,
     r_scale: float,
 ) -> Tensor:
-    """ℓ = −½ V of `innovations` at each row of `thetas` `(K, k)`, `2 _GROUP` filters a batch;
-    −inf where a filter fails."""
+    """ℓ = −½ V at each row of `thetas` `(K, k)`, `2 _GROUP` filters a batch; −inf on failure."""
     out = []
     for part in torch.split(thetas, 2 * _GROUP):
         parts = innovations(model, experiments, tuning, part, q_scale=q_scale, r_scale=r_scale,
@@ -461,11 +465,9 @@ def pem_refine(
     3.3–6 σ off (the pseudo-inverse step leans on the curve's poorly determined directions,
     where ℓ is far from quadratic), while the seeds whose steps were taken ended within 2 σ.
     It stops when the step's expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ`` falls below `min_gain` nats,
-    when no trial raises ℓ, or after `iterations`. A trial that puts any |θ| at half the
-    filter's box (``tuning.theta_bound``, where a run reports the parameter "at a bound") is not
-    taken: along a direction the data barely see (a tanh neuron's slope saturating into a step)
-    ℓ keeps rising by rounding-sized amounts, and one run of the rig's LuGre config walked there
-    in 8 steps where a start 1e-10 away stopped after 2.
+    when no trial raises ℓ, or after `iterations`. No trial puts any |θ| at half the filter's
+    box (``tuning.theta_bound``: a run reports that "at a bound"): along a direction the data
+    barely see, ℓ keeps rising by rounding-sized amounts (the rig's LuGre config walked there).
 
     `start`: the covariance at `theta` when the caller has it already (not computed again).
 
