@@ -375,7 +375,9 @@ def structure_key(model: ArmModel) -> str:
     through the native code's aliases, in later ones."""
     spec = model.spec()
     spec["friction"] = {k: v for k, v in spec["friction"].items() if k != "values"}
-    spec.pop("arm", None)  # θ's physical values; everything else fixes the structure
+    # θ's physical values go; which white-box terms the arm has (offset, gravity, asymmetric,
+    # c_m, the bristles') stays: they change the code, not only θ's length
+    spec["arm"] = sorted(spec.get("arm", {}))
     classes = {c for m in model.modules() for c in type(m).__mro__ if c.__module__ != "builtins"}
     classes = {c for c in classes if not c.__module__.startswith("torch.")}
     spec["classes"] = sorted(
