@@ -218,9 +218,10 @@ class OddTanhFriction(Friction):
             ``lo = min_slope``). A run sets it to ``saturation / v_data`` (`model.saturation`,
             3 by default, over the data's velocity scale): every neuron is then saturated to
             within ``1 − tanh(3) = 0.5 %`` at the data's typical top speed, so that no neuron
-            can stay linear over the data and take the viscous term's role: the total
-            friction's slope at high speed is ``b`` alone, and b is identifiable by
-            construction. The sign of a neuron lives in W2.
+            stays linear over the whole data and the total friction's slope at the top speeds
+            is ``b`` alone. A neuron that saturates only near that speed can still share b's
+            slope over the upper half of the data; a run checks for it and says so
+            (`torchfric.estimators.sandwich.viscous_share`). The sign of a neuron lives in W2.
     """
 
     kind = "tanh"

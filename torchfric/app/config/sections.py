@@ -210,9 +210,12 @@ class ModelConfig(TableSection):
             the data.
         saturation: tanh only: every neuron's input weight is bounded below by ``saturation /
             velocity scale`` (`OddTanhFriction.min_slope`), so each neuron is saturated to
-            within ``1 − tanh(saturation)`` at the data's 95th-percentile speed and none can
-            act as a second viscous term: b is then the total friction's slope at high speed,
-            identifiable by construction. 0 = the paper's unbounded weights.
+            within ``1 − tanh(saturation)`` at the data's 95th-percentile speed: none can stay
+            linear over the whole data. A neuron at the bound still rises between the median
+            and that speed, though, and takes part of b's slope there (one of 12 fits of a
+            rotary axis: b 47 σ off, 1.2 σ with 6); the run checks every neuron and warns
+            ("viscous and neuron j … are not separately identifiable"): raise it (6, say)
+            then. 0 = the paper's unbounded weights.
         init: "prefit" (least-squares pre-fit on the training data), "config" (the values above)
             or the path of a checkpoint to warm-start from (stored absolute).
         dynamic: "none" (static friction) or "lugre": a bristle state z with ``ż = q̇ − σ0 |q̇|

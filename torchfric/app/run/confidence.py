@@ -23,7 +23,8 @@ output-error run gets the sandwich of its own criterion (`attach_oe_covariance`)
 metrics.json gains ``covariance`` (method, samples, blocks, the bandwidth, the correlation
 matrix, the noise model, the Newton step to the criterion's optimum in σ units), ``polished``
 or ``polish_rejected``, and ``identifiability`` (groups of parameters the data cannot
-separate, by name).
+separate, by name: the covariance's, and the tanh neurons that take part of b over the
+identification data's speeds, `viscous_share`; `run_identifiability` joins them).
 """
 
 from __future__ import annotations
@@ -38,10 +39,12 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine
+from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
+from ...estimators.uncertainty import physical_std
 from ...models.arm import ArmModel
 from ..config import Config
 
-__all__ = ["attach_covariance", "attach_oe_covariance", "PHYSICAL"]
+__all__ = ["attach_covariance", "attach_oe_covariance", "run_identifiability", "PHYSICAL"]
 
 PHYSICAL = ("inertia", "viscous", "offset", "gravity", "asymmetric", "c_m", "lugre_")
 """White-box names: a non-identifiable direction that involves one of them is a warning; one
@@ -111,7 +114,7 @@ def attach_covariance(
     extra["covariance"] = {**pem.to_dict(), "noise_model": {
         "q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
         "measure": tuning.measure}}  # fmt: skip
-    ident = pem.identifiability
+    ident = run_identifiability(final, pem, train)
     extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
     say(
         f"  covariance: prediction-error sandwich over {pem.samples} samples "
@@ -143,10 +146,29 @@ def attach_oe_covariance(
         return
     state["P_theta"] = cov.cov
     extra["covariance"] = cov.to_dict()
-    extra["identifiability"] = {**cov.identifiability.to_dict(),
-                                "messages": _messages(cov.identifiability)}  # fmt: skip
+    ident = run_identifiability(final, cov, train)
+    extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
     say(f"  covariance: simulation-error sandwich over {cov.samples} samples "
         f"({cov.blocks} blocks, {cov.bandwidth} lags)")  # fmt: skip
+
+
+def run_identifiability(
+    model: ArmModel, pem: PEMCovariance, train: list[Experiment]
+) -> Identifiability:
+    """The run's identifiability report: the covariance's (`pem.identifiability`) and the tanh
+    neurons that take part of b (`viscous_share`) at ``pem.theta``, b's σ the reported one
+    (`physical_std`), over the identification records' velocity (reconstructed or measured;
+    from position differences where there is none, as `velocity_scale` reads it)."""
+    theta = torch.as_tensor(pem.theta, dtype=torch.float64)
+    values = dict(zip(model.theta_names, model.to_physical(theta).tolist(), strict=True))
+    std = physical_std(model, theta, torch.diagonal(pem.cov))
+    sigma = dict(zip(model.theta_names, std.tolist(), strict=True)).get("viscous")
+    speeds = torch.cat(
+        [e.qdot if e.qdot is not None else torch.diff(e.q) / e.dt for e in train]
+        or [torch.zeros(1, dtype=torch.float64)]
+    )
+    shares = viscous_share(values, speeds, viscous_std=sigma)
+    return dataclasses.replace(pem.identifiability, shares=shares)
 
 
 def _score(cfg: Config, model: ArmModel, theta: Any, records: list[Experiment]) -> float:
