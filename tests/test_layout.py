@@ -24,7 +24,8 @@ ALLOWED = {
     "data": {"leaf"},
     "accel": {"leaf", "models"},
     "estimators": {"leaf", "models", "data", "accel"},
-    "app": {"leaf", "models", "data", "accel", "estimators"},
+    "export": {"leaf", "models", "accel"},
+    "app": {"leaf", "models", "data", "accel", "estimators", "export"},
     "face": {"leaf", "models", "data", "estimators"},
     "main": {"app"},
 }

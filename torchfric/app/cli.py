@@ -129,14 +129,27 @@ def _add_record_options(p: argparse.ArgumentParser) -> None:
 
 
 def _add_export(sub: argparse._SubParsersAction) -> None:
-    """``torchfric export CHECKPOINT --out FILE``: a TorchScript module."""
+    """``torchfric export CHECKPOINT --out FILE [--format torchscript|fmu|c]``."""
     p = sub.add_parser(
         "export",
-        help="export a checkpoint as TorchScript",
-        description="Export a checkpoint as a TorchScript module (loads with torch.jit.load, no torchfric needed).",
+        help="export a checkpoint as TorchScript, an FMI 2.0 FMU or C99 sources",
+        description=(
+            "Export a checkpoint: a TorchScript module (loads with torch.jit.load, no torchfric "
+            "needed), an FMI 2.0 FMU (Model Exchange and Co-Simulation, self-contained C with "
+            "its binary for this platform), or C99 sources NAME.c and NAME.h (friction "
+            "feed-forward and the model's step)."
+        ),
     )
     p.add_argument("checkpoint")
-    p.add_argument("--out", required=True, help="output file, e.g. arm_tanh.ts")
+    p.add_argument(
+        "--out", required=True, help="output file: arm.ts (torchscript), arm.fmu (fmu), arm.c (c; arm.h beside it)"
+    )
+    p.add_argument(
+        "--format",
+        choices=("torchscript", "fmu", "c"),
+        default="torchscript",
+        help="torchscript (default), fmu or c",
+    )
     p.add_argument(
         "--dt",
         type=float,

@@ -26,7 +26,10 @@ __all__ = [
     "rk4_step",
     "solver_step",
     "full_state",
+    "steady_bristles",
     "auto_substeps",
+    "BRISTLE_OMEGA_H",
+    "stiffness_speeds",
     "friction_stiffness",
     "bristle_stiffness",
     "sample_grid",
@@ -176,7 +179,7 @@ def auto_substeps(
 # A dynamic model's sub-step keeps ω h <= this, ω = sqrt(σ0/M) the bristle resonance: its
 # stiff parts are exact or implicit at any h, the resonance is what h must resolve (on the rig,
 # 2 sub-steps per ms: open-loop FIT 99.98 % against the rig's own 10 sub-steps; 1: 99.92 %).
-_BRISTLE_OMEGA_H = 0.1
+BRISTLE_OMEGA_H = 0.1
 
 
 def _bristle_substeps(model: ArmModel, dt: float, theta: Tensor, max_substeps: int) -> int:
@@ -188,7 +191,7 @@ def bristle_stiffness(model: ArmModel, theta: Tensor) -> float:
     """A dynamic model's sub-steps per second of `auto_substeps`, ``ω / 0.1`` with
     ``ω = sqrt(σ0/M)`` its bristle resonance; a one-line error when it is not finite."""
     arm = model.split(theta)[1]
-    rate = float(torch.sqrt(arm["lugre_sigma0"] / arm["inertia"])) / _BRISTLE_OMEGA_H
+    rate = float(torch.sqrt(arm["lugre_sigma0"] / arm["inertia"])) / BRISTLE_OMEGA_H
     if not math.isfinite(rate):
         raise TorchfricError(
             "the model's bristle stiffness is not finite; check the parameters (NaN or inf in θ)"
@@ -196,12 +199,18 @@ def bristle_stiffness(model: ArmModel, theta: Tensor) -> float:
     return rate
 
 
+def stiffness_speeds() -> Tensor:
+    """The 401 velocities `friction_stiffness` reads the friction's slope at: 0 and ±1e-4 … 1e3,
+    200 per side, evenly spaced in log."""
+    mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
+    return torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags])
+
+
 def friction_stiffness(model: ArmModel, theta: Tensor) -> float:
     """λ = max |∂q̈/∂q̇| over |q̇| in [1e-4, 1e3] for θ `theta`: the stiffness `auto_substeps`
     (and the exported module's own rule) sizes the sub-steps by. A one-line error when it is
     not finite."""
-    mags = torch.logspace(-4, 3, 200, dtype=torch.float64)
-    v = torch.cat([-mags.flip(0), torch.zeros(1, dtype=torch.float64), mags]).requires_grad_(True)
+    v = stiffness_speeds().requires_grad_(True)
     with torch.enable_grad():
         (g,) = torch.autograd.grad(model.friction_torque(v, theta).sum(), v)
     lam = float(g.detach().abs().max() / model.split(theta)[1]["inertia"])
@@ -291,10 +300,14 @@ def full_state(model: ArmModel, x0: Tensor, theta: Tensor) -> Tensor:
     `x0` that already holds the whole state is returned as it is."""
     if x0.shape[-1] == model.state_size:
         return x0
-    fric, arm = model.split(theta)
-    v = x0[..., 1]
-    z = model.black_box(v, fric, arm) / arm["lugre_sigma0"]
+    z = steady_bristles(model, x0[..., 1], *model.split(theta))
     return torch.cat([x0, z.unsqueeze(-1)], dim=-1)
+
+
+def steady_bristles(model: ArmModel, v: Tensor, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
+    """A dynamic model's steady bristle deflection at velocity `v`, ``sign(v) g(v) / σ0`` (0 at
+    rest), for the physical dicts of `ArmModel.split`."""
+    return model.black_box(v, fric, arm) / arm["lugre_sigma0"]
 
 
 def solver_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
