@@ -299,13 +299,19 @@ def test_a_changed_parameter_changes_the_simulation(tmp_path: pathlib.Path) -> N
 
 
 def test_cli_export_formats(tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`export --format fmu` needs nothing beyond --out; `--format c` writes NAME.c and NAME.h;
-    an existing file is not replaced; a bad --format is one line naming the formats."""
+    """`export --out m.fmu` needs no other flag (the suffix names the format; so does .c, which
+    writes NAME.c and NAME.h); a suffix that contradicts --format, an existing file and a bad
+    --format are each one line, and replace nothing."""
     ck = str(CHECKPOINTS[0])
-    assert main(["export", ck, "--out", str(tmp_path / "m.fmu"), "--format", "fmu"]) == 0
+    assert main(["export", ck, "--out", str(tmp_path / "m.fmu")]) == 0
     assert zipfile.is_zipfile(tmp_path / "m.fmu")
-    assert main(["export", ck, "--out", str(tmp_path / "ff.c"), "--format", "c"]) == 0
+    assert main(["export", ck, "--out", str(tmp_path / "ff.c")]) == 0
     assert (tmp_path / "ff.h").exists() and "ff_friction" in (tmp_path / "ff.h").read_text()
+    assert main(["export", ck, "--out", str(tmp_path / "g.fmu"), "--format", "fmu"]) == 0
+    capsys.readouterr()
+    assert main(["export", ck, "--out", str(tmp_path / "h.ts"), "--format", "fmu"]) != 0
+    assert "end --out in .fmu" in capsys.readouterr().err
+    assert not (tmp_path / "h.ts").exists()
     before = (tmp_path / "m.fmu").read_bytes()
     assert main(["export", ck, "--out", str(tmp_path / "m.fmu"), "--format", "fmu"]) != 0
     assert (tmp_path / "m.fmu").read_bytes() == before

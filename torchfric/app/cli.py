@@ -142,13 +142,15 @@ def _add_export(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("checkpoint")
     p.add_argument(
-        "--out", required=True, help="output file: arm.ts (torchscript), arm.fmu (fmu), arm.c (c; arm.h beside it)"
+        "--out",
+        required=True,
+        help="output file: arm.ts (torchscript), arm.fmu (fmu), arm.c (c; arm.h beside it)",
     )
     p.add_argument(
         "--format",
         choices=("torchscript", "fmu", "c"),
-        default="torchscript",
-        help="torchscript (default), fmu or c",
+        default=None,
+        help="torchscript, fmu or c (default: from --out: .fmu an FMU, .c C sources, else TorchScript)",
     )
     p.add_argument(
         "--dt",

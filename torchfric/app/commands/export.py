@@ -8,6 +8,7 @@ import argparse
 import hashlib
 import pathlib
 
+from ...errors import TorchfricError
 from .evaluate import refuse_overwrite
 
 __all__ = ["cmd_export"]
@@ -16,8 +17,8 @@ __all__ = ["cmd_export"]
 def cmd_export(args: argparse.Namespace) -> int:
     from ..artifacts import checkpoint_config, checkpoint_model, read_checkpoint
 
-    fmt = getattr(args, "format", "torchscript")
     out = pathlib.Path(args.out)
+    fmt = _format(getattr(args, "format", None), out)
     targets = [out, out.with_suffix(".h")] if fmt == "c" else [out]
     for target in targets:
         refuse_overwrite(target, [args.checkpoint], args.force)
@@ -49,6 +50,20 @@ def cmd_export(args: argparse.Namespace) -> int:
           f"Co-Simulation, binary {info.platform}, sources inside): input u; outputs q, qdot, "
           "friction; parameters q0, qdot0 and the identified values")  # fmt: skip
     return 0
+
+
+_SUFFIX = {".fmu": "fmu", ".c": "c"}
+
+
+def _format(asked: str | None, out: pathlib.Path) -> str:
+    """The format: `asked`, else the one --out's suffix names (.fmu, .c; anything else
+    TorchScript); a suffix that names another format than `asked` is a one-line error."""
+    implied = _SUFFIX.get(out.suffix.lower(), "torchscript")
+    if asked is None or asked == implied:
+        return implied
+    want = {"fmu": ".fmu", "c": ".c"}.get(asked)
+    fix = f"end --out in {want}" if want else "give --out a name not ending in .fmu or .c"
+    raise TorchfricError(f"--out {out} does not fit --format {asked}: {fix}")
 
 
 def _torchscript(model, out: str, dt: float, sim) -> int:  # type: ignore[no-untyped-def]
