@@ -37,6 +37,8 @@ from ..models.arm import arm_friction, external_torque
 from ..models.simulate import (
     BRISTLE_OMEGA_H,
     SOLVERS,
+    bristle_stiffness,
+    friction_stiffness,
     rk4_step,
     steady_bristles,
     stiffness_speeds,
@@ -83,6 +85,7 @@ class Program:
     dynamic: bool
     method: str
     fixed_substeps: int  # 0: the automatic rule
+    stiffness: float  # the rule's rate at the identified values (`friction_stiffness`, `bristle_stiffness`)
 
 
 def _layout(model: ArmModel) -> tuple[list[tuple[str, str, tuple[int, ...]]], Tensor]:
@@ -193,12 +196,16 @@ def model_program(model: ArmModel, *, method: str = "rk4", substeps: int | str =
         functions.append(("tf_bristle", lambda v, p: steady_bristles(model, v, *_split(layout, p)),
                           [("v", v), ("p", p)]))  # fmt: skip
     sources = {name: c_function(name, fn, args)[0] for name, fn, args in functions}
-    return Program(sources, _parameters(model, layout, values), n, n == 3, method, fixed)
+    theta = model.get_theta()
+    rate = bristle_stiffness(model, theta) if n == 3 else friction_stiffness(model, theta)
+    return Program(sources, _parameters(model, layout, values), n, n == 3, method, fixed, rate)
 
 
-def substep_rule(program: Program) -> str:
+def substep_rule(program: Program, *, constant: bool = False) -> str:
     """C of ``static int tf_substeps(double dt, const double *p)``: the sub-steps per interval of
-    `torchfric.simulate.auto_substeps` (or the run's fixed count) for parameters `p`."""
+    `torchfric.simulate.auto_substeps` (or the run's fixed count) for parameters `p`; with
+    `constant`, for the identified values only, from the rate `model_program` computed as
+    `auto_substeps` does (the C export, whose parameters are constants: no slope scan per call)."""
     if program.fixed_substeps:
         return (
             "static int tf_substeps(double dt, const double *p) {\n"
@@ -207,7 +214,10 @@ def substep_rule(program: Program) -> str:
     names = [q.name for q in program.parameters]
     inertia = names.index("inertia")
     head = "static int tf_substeps(double dt, const double *p) {\n  double s;\n"
-    if program.dynamic:  # `bristle_stiffness`: sqrt(σ0/M)/0.1 per second
+    if constant:
+        scale = "" if program.dynamic else f" / {SOLVERS[program.method]!r}"
+        body = f"  (void)p;\n  s = ceil({program.stiffness!r} * dt{scale});\n"
+    elif program.dynamic:  # `bristle_stiffness`: sqrt(σ0/M)/0.1 per second
         s0 = names.index("lugre_sigma0")
         body = f"  s = ceil(sqrt(p[{s0}] / p[{inertia}]) / {BRISTLE_OMEGA_H!r} * dt);\n"
     else:  # `friction_stiffness`: max |dF/dv| over the velocities of TF_SPEEDS, over M

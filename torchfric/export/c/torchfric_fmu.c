@@ -39,6 +39,8 @@ typedef struct {
   double x[TF_NX];
   double q0, qdot0;
   double p[TF_NP];
+  double step_H; /* the last communication step and its sub-step count (the rule scans the */
+  int step_S;    /* friction's slope): valid until a parameter changes (step_H = 0) */
 } tf_instance;
 
 static void tf_log(tf_instance *m, fmi2Status status, const char *category, const char *fmt, ...) {
@@ -79,6 +81,8 @@ static void tf_reset(tf_instance *m) {
   m->q0 = 0.0;
   m->qdot0 = 0.0;
   memcpy(m->p, TF_PARAM_START, sizeof m->p);
+  m->step_H = 0.0;
+  m->step_S = 0;
   for (int i = 0; i < TF_NX; ++i) m->x[i] = 0.0;
 }
 
@@ -220,8 +224,10 @@ TF_EXPORT fmi2Status fmi2SetReal(fmi2Component c, const fmi2ValueReference vr[],
                      r == VR_Q0 ? "q0" : "qdot0");
     else if (r == VR_Q0) m->q0 = value[k];
     else if (r == VR_QDOT0) m->qdot0 = value[k];
-    else if (r >= VR_P && r < VR_P + TF_NP) m->p[r - VR_P] = value[k];
-    else {
+    else if (r >= VR_P && r < VR_P + TF_NP) {
+      m->p[r - VR_P] = value[k];
+      m->step_H = 0.0;
+    } else {
       char ref[32];
       snprintf(ref, sizeof ref, "%u", r);
       return tf_fail(m, "fmi2SetReal: value reference %s is not an input or a parameter", ref);
@@ -293,7 +299,11 @@ TF_EXPORT fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPo
   (void)noSetFMUStatePriorToCurrentPoint;
   if (m->state != ST_RUNNING) return tf_fail(m, "%s before initialization ended", "fmi2DoStep");
   if (!(H > 0.0)) return tf_fail(m, "fmi2DoStep: the step size must be positive%s", "");
-  S = tf_substeps(H, m->p);
+  if (H != m->step_H) {
+    m->step_S = tf_substeps(H, m->p);
+    m->step_H = H;
+  }
+  S = m->step_S;
   for (int i = 0; i < S; ++i) {
     /* the simulator's grid: t + H i/S, its last point t + H */
     double a = currentCommunicationPoint + H * ((double)i / S);
