@@ -118,7 +118,8 @@ def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -
     size = f"auto (tries {tries}; the largest is started here)" if tries else m.size
     what = f"{m.friction} friction" + (f", size {size}" if sized else "")
     if base.state_size != 2:
-        bristles = {k: v for k, v in base.physical_parameters().items() if k.startswith("lugre")}
+        # the values the run starts from (a checkpoint's, when model.init names one)
+        bristles = {k: v for k, v in start.physical_parameters().items() if k.startswith("lugre")}
         what += (
             " with LuGre bristles ("
             + ", ".join(f"{k.removeprefix('lugre_')} {v:.4g}" for k, v in bristles.items())
