@@ -289,10 +289,13 @@ def _track_figure(names, session):  # type: ignore[no-untyped-def]
         ax.plot(t, vals[:, i], "C0", lw=1.0)
         for c in changes:
             ax.axvline(c, color="C3", lw=1.0, ls="--")
+            if i == 0:  # each change's time, once, at the top of the first panel
+                ax.text(c, 0.98, f" {c:.1f} s", color="C3", fontsize=7, va="top",
+                        transform=ax.get_xaxis_transform())  # fmt: skip
         ax.set_title(names[i], fontsize=9)
         ax.tick_params(labelsize=7)
     axes.flat[0].set_xlabel("t [s]", fontsize=8)
-    fig.suptitle("tracked parameters, ±2σ (red: detected changes)", fontsize=10)
+    fig.suptitle(f"tracked parameters, ±2σ; red: {len(changes)} detected change(s)", fontsize=10)
     fig.tight_layout()
     return fig
 
