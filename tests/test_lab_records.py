@@ -126,7 +126,7 @@ def test_init_and_check_a_german_lab_file(tmp_path, record, monkeypatch, capsys)
     assert (d.time_unit, d.position_unit, d.wrap_period) == ("ms", "deg", None)
     assert main(["check", "messung.toml"]) == 0
     out = capsys.readouterr().out
-    assert "messung.csv: 2974 samples in 3 segments" in out and "t in ms (read as s)" in out
+    assert "messung.csv: 2974 samples in 3 segments" in out and "t in ms (converted to s)" in out
 
 
 def test_wrapped_counts_are_refused_at_check_unless_unwrapped(

@@ -20,6 +20,7 @@ import torch
 
 from ...data import DEFAULT_CUTOFF_HZ, Experiment
 from ...data.units import si_unit
+from ...data.velocity import settling_samples
 from ...errors import TorchfricError
 from ...models.arm import ArmModel
 from ...resources import format_bytes
@@ -80,9 +81,12 @@ def _shown(path: str) -> str:
     return path if rel.startswith("..") else rel
 
 
-def _records(label: str, exps: list[Experiment], paths: tuple[str, ...]) -> list[str]:
+def _records(
+    label: str, exps: list[Experiment], paths: tuple[str, ...], settle: int = 0
+) -> list[str]:
     """One line per record: file, samples, sample time and rate, duration (and its segments,
-    ``NAME#1``, ``NAME#2``, … where gaps cut it)."""
+    ``NAME#1``, ``NAME#2``, … where gaps cut it, each without its first `settle` samples: the
+    velocity filter's start transient, which `init`'s count of the file's rows includes)."""
     if not exps:
         return [_line(label, "none")]
     lines, rest = [], list(exps)
@@ -93,6 +97,8 @@ def _records(label: str, exps: list[Experiment], paths: tuple[str, ...]) -> list
             part.append(rest.pop(0))
         n, dt = sum(e.n for e in part), part[0].dt
         cut = f" in {len(part)} segments" if len(part) > 1 else ""
+        if cut and settle:
+            cut += f" (each without its first {settle}: the velocity filter settling)"
         text = (
             f"{_shown(path)}: {n} samples{cut}, dt {dt:.6g} s ({1.0 / dt:.6g} Hz), "
             f"{sum(e.duration for e in part):.6g} s"
@@ -196,10 +202,12 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     t_start = time.perf_counter() - t_start
     run = _run_dir(cfg)
     d = cfg.data
+    dt = (train[0].dt if train else 1.0) if d.velocity != "measured" else 1.0
+    settle = settling_samples(d.velocity, dt, d.velocity_cutoff_hz)
     lines = [
         _line("run", f"{cfg.name} → {run} (train claims it; check creates nothing)"),
-        *_records("train", train, d.train),
-        *_records("validation", val, d.validation),
+        *_records("train", train, d.train, settle),
+        *_records("validation", val, d.validation, settle),
     ]
     if not val:
         lines.append(
@@ -209,7 +217,7 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
             )  # fmt: skip
         )
     if test:
-        lines += _records("test", test, d.test)
+        lines += _records("test", test, d.test, settle)
     lines.append(_line("velocity", _velocity(cfg)))
     lines.append(_line("units", _units(cfg, train)))
     if d.position_unit != "rad" or d.start or d.stop is not None or d.input_delay:
@@ -266,10 +274,10 @@ def _units(cfg: Config, train: list[Experiment]) -> str:
     number that shows a position in degrees (or mm) read as rad (or m) at a glance."""
     d = cfg.data
     si = si_unit(d.position_unit, d.counts_per_m)
-    t = "t in s" if d.time_unit == "s" else f"t in {d.time_unit} (read as s)"
+    t = "t in s" if d.time_unit == "s" else f"t in {d.time_unit} (converted to s)"
     speeds = [float(e.qdot.abs().max()) for e in train if e.qdot is not None and e.n]
     if not speeds:
-        return f"{t}, q in {_q_unit(cfg)} (read as {si})"
+        return f"{t}, q in {_q_unit(cfg)} (converted to {si})"
     v = max(speeds)
     turns = f" = {rpm(v):,.0f} rpm" if si == "rad" else ""
     return (

@@ -455,7 +455,7 @@ def write_starter(
         f"data        {plan.data.name}: {_samples(plan)}, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} "
         f"Hz, uniform to {plan.jitter:.2g} of a step)",
         "columns     " + ", ".join(f"{k} = {v!r}" for k, v in plan.read_as.items()),
-        *([f"time        {plan.time_unit} (read as s)"] if plan.time_unit != "s" else []),
+        *([f"time        {plan.time_unit} (converted to s)"] if plan.time_unit != "s" else []),
         f"position    {plan.position.unit} ({plan.position.why})",
     ]
     if plan.validation:
