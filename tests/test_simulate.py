@@ -492,6 +492,26 @@ def test_compiled_engine_equals_odeint_across_models_of_one_structure() -> None:
         simulate(first, t[:50], u[:50], x0, engine="fast")
 
 
+def test_compiled_engine_keeps_only_the_sample_states_by_blocks(monkeypatch) -> None:
+    """Without a gradient the compiled engine runs the record by blocks of sample intervals and
+    keeps each interval's last state (all sub-steps' states cost substeps × the result: over
+    1 GB in a 20-minute record's member selection); blocks of 7 intervals, 3 sub-steps, a batch
+    of 2: the same numbers, bit for bit, as one block, and odeint's to rounding."""
+    import torchfric.accel.simulation as compiled
+
+    model = ArmModel(OddTanhFriction(3, w1=[0.5, 5.0, 50.0], w2=[0.04, 0.05, 0.1]), 0.03, 0.01)
+    t = torch.arange(300, dtype=torch.float64) * 1e-3
+    u = torch.stack([0.3 * torch.sin(2 * math.pi * 1.5 * t), 0.2 * torch.cos(2 * math.pi * t)], 1)
+    x0 = torch.tensor([[0.1, -0.4], [0.0, 0.3]])
+    with torch.no_grad():
+        whole = simulate(model, t, u, x0, substeps=3, engine="compiled")
+        monkeypatch.setattr(compiled, "_BLOCK", 7)
+        blocks = simulate(model, t, u, x0, substeps=3, engine="compiled")
+        ref = simulate(model, t, u, x0, substeps=3)
+    assert torch.equal(blocks, whole)
+    torch.testing.assert_close(blocks, ref, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("batch", [None, 3])
 def test_compiled_engine_gradient_equals_backprop_through_odeint(batch) -> None:
     """The compiled engine's gradient (a compiled reverse scan with the VJP of one rk4 step) is
