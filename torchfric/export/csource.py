@@ -23,7 +23,7 @@ from ..errors import TorchfricError
 from ..files import atomic_write_text
 from ..models import ArmModel
 from .fmu import model_identifier
-from .program import model_program, substep_rule
+from .program import ADVANCE, model_program, substep_rule
 
 __all__ = ["export_c"]
 
@@ -91,11 +91,13 @@ def export_c(
         f"const double {ident}_parameters[{k}] = {{\n  {values}\n}};",
         f"const char *const {ident}_parameter_names[{k}] = {{{names}}};",
         f"#define TF_P {ident}_parameters",
+        f"#define TF_NX {n}",
         "",
-        program.functions["tf_step"],
-        program.functions["tf_curve"],
-        program.functions["tf_bristle"] if program.dynamic else "",
+        program.function("tf_step"),
+        program.function("tf_curve"),
+        program.function("tf_bristle") if program.dynamic else "",
         substep_rule(program, constant=True),
+        ADVANCE,
         f"""double {ident}_friction(double v) {{
   double f;
   tf_curve(&v, TF_P, &f);
@@ -103,14 +105,8 @@ def export_c(
 }}
 
 int {ident}_step(double *state, double u, double dt) {{
-  double next[{n}];
   int S = tf_substeps(dt, TF_P);
-  for (int i = 0; i < S; ++i) {{
-    double a = dt * ((double)i / S), b = i + 1 < S ? dt * ((double)(i + 1) / S) : dt;
-    double h = b - a;
-    tf_step(state, &u, &h, TF_P, next);
-    for (int j = 0; j < {n}; ++j) state[j] = next[j];
-  }}
+  tf_advance(state, u, 0.0, dt, S, TF_P);
   for (int j = 0; j < {n}; ++j)
     if (!isfinite(state[j])) return 0;
   return S;

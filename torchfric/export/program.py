@@ -24,7 +24,8 @@ velocities, capped at 64; ``⌈ω dt / 0.1⌉`` for bristles), or the run's fixe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -33,13 +34,13 @@ from torch import Tensor
 from ..accel.native.functions import c_function
 from ..errors import TorchfricError
 from ..models import ArmModel
-from ..models.arm import arm_friction, external_torque
+from ..models.arm import external_torque
 from ..models.simulate import (
     BRISTLE_OMEGA_H,
     SOLVERS,
     bristle_stiffness,
     friction_stiffness,
-    rk4_step,
+    solver_step,
     steady_bristles,
     stiffness_speeds,
 )
@@ -74,18 +75,26 @@ class Parameter:
     unit: str
 
 
-@dataclass(frozen=True)
+@dataclass
 class Program:
-    """The model's C functions (`functions`: name → source of a static function ``tf_…``), its
-    parameters in the order of the array ``p`` they read, and the facts an FMU needs about it."""
+    """The model's C functions (`function`: the source of a static function ``tf_…``, traced
+    when first asked for), its parameters in the order of the array ``p`` they read, and the
+    facts an FMU needs about it."""
 
-    functions: dict[str, str]
+    tracers: dict[str, Callable[[], str]]
     parameters: list[Parameter]
     state_size: int
     dynamic: bool
     method: str
     fixed_substeps: int  # 0: the automatic rule
     stiffness: float  # the rule's rate at the identified values (`friction_stiffness`, `bristle_stiffness`)
+    _sources: dict[str, str] = field(default_factory=dict)
+
+    def function(self, name: str) -> str:
+        """The C source of ``tf_<name>``-named function `name` (traced once)."""
+        if name not in self._sources:
+            self._sources[name] = self.tracers[name]()
+        return self._sources[name]
 
 
 def _layout(model: ArmModel) -> tuple[list[tuple[str, str, tuple[int, ...]]], Tensor]:
@@ -126,29 +135,10 @@ def _parameters(model: ArmModel, layout, values: Tensor) -> list[Parameter]:  # 
     return out
 
 
-def _method_step(model: ArmModel, method: str):  # type: ignore[no-untyped-def]
-    """One solver step ``(x, u, h, fric, arm) -> x'`` as `torchfric.simulate` takes it."""
-    if model.state_size != 2:
-        return model.substep
-    if method == "rk4":
-        return lambda x, u, h, fric, arm: rk4_step(model, x, u, h, fric, arm)
-    if method == "midpoint":  # torchdiffeq's midpoint: x + h f(x + h/2 f(x))
-
-        def midpoint(x, u, h, fric, arm):  # type: ignore[no-untyped-def]
-            k1 = model.dynamics(x, u, fric, arm)
-            return x + h * model.dynamics(x + k1 * (0.5 * h), u, fric, arm)
-
-        return midpoint
-    return lambda x, u, h, fric, arm: x + h * model.dynamics(x, u, fric, arm)
-
-
 def _state_friction(model: ArmModel):  # type: ignore[no-untyped-def]
     """The friction torque at a state ``(x, u, fric, arm)``."""
     if model.state_size == 2:
-        return lambda x, u, fric, arm: arm_friction(
-            x[1], model.black_box(x[1], fric, arm), arm.get("viscous"), arm.get("offset"),
-            arm.get("asymmetric"),
-        )  # fmt: skip
+        return lambda x, u, fric, arm: model.total_friction(x[1], fric, arm)
 
     def dynamic(x, u, fric, arm):  # type: ignore[no-untyped-def]
         accel = model.dynamics(x, u, fric, arm)[1]
@@ -167,7 +157,6 @@ def model_program(model: ArmModel, *, method: str = "rk4", substeps: int | str =
     fixed = 0 if substeps == "auto" else int(substeps)
     if substeps != "auto" and (isinstance(substeps, bool) or fixed < 1):
         raise TorchfricError(f"substeps must be a positive integer or 'auto', got {substeps!r}")
-    model = model.double()
     layout, values = _layout(model)
     n = model.state_size
     x = torch.tensor([0.1, 0.3, 0.0][:n], dtype=torch.float64)
@@ -175,30 +164,47 @@ def model_program(model: ArmModel, *, method: str = "rk4", substeps: int | str =
         x[2] = 1e-4
     u, h, v = (torch.tensor(c, dtype=torch.float64) for c in (0.5, 1e-4, 0.3))
     p = values.clone()
-    step, at_state = _method_step(model, method), _state_friction(model)
+    at_state = _state_friction(model)
 
     def curve(v: Tensor, p: Tensor) -> Tensor:
-        fric, arm = _split(layout, p)
-        return arm_friction(v, model.black_box(v, fric, arm), arm.get("viscous"),
-                            arm.get("offset"), arm.get("asymmetric"))  # fmt: skip
+        return model.total_friction(v, *_split(layout, p))
 
-    functions: list[tuple[str, Any, list[tuple[str, Tensor]]]] = [
-        ("tf_step", lambda x, u, h, p: step(x, u, h, *_split(layout, p)),
-         [("x", x), ("u", u), ("h", h), ("p", p)]),
-        ("tf_field", lambda x, u, p: model.dynamics(x, u, *_split(layout, p)),
-         [("x", x), ("u", u), ("p", p)]),
-        ("tf_friction", lambda x, u, p: at_state(x, u, *_split(layout, p)),
-         [("x", x), ("u", u), ("p", p)]),
-        ("tf_curve", curve, [("v", v), ("p", p)]),
-        ("tf_slope", torch.func.grad(curve), [("v", v), ("p", p)]),
-    ]  # fmt: skip
-    if n == 3:
-        functions.append(("tf_bristle", lambda v, p: steady_bristles(model, v, *_split(layout, p)),
-                          [("v", v), ("p", p)]))  # fmt: skip
-    sources = {name: c_function(name, fn, args)[0] for name, fn, args in functions}
+    specs: dict[str, tuple[Any, list[tuple[str, Tensor]]]] = {
+        "tf_step": (lambda x, u, h, p: solver_step(model, x, u, h, *_split(layout, p), method),
+                    [("x", x), ("u", u), ("h", h), ("p", p)]),
+        "tf_field": (lambda x, u, p: model.dynamics(x, u, *_split(layout, p)),
+                     [("x", x), ("u", u), ("p", p)]),
+        "tf_friction": (lambda x, u, p: at_state(x, u, *_split(layout, p)),
+                        [("x", x), ("u", u), ("p", p)]),
+        "tf_curve": (curve, [("v", v), ("p", p)]),
+        "tf_slope": (torch.func.grad(curve), [("v", v), ("p", p)]),
+        "tf_bristle": (lambda v, p: steady_bristles(model, v, *_split(layout, p)),
+                       [("v", v), ("p", p)]),
+    }  # fmt: skip
+    tracers = {name: _tracer(name, fn, args) for name, (fn, args) in specs.items()}
     theta = model.get_theta()
     rate = bristle_stiffness(model, theta) if n == 3 else friction_stiffness(model, theta)
-    return Program(sources, _parameters(model, layout, values), n, n == 3, method, fixed, rate)
+    return Program(tracers, _parameters(model, layout, values), n, n == 3, method, fixed, rate)
+
+
+def _tracer(name: str, fn: Any, args: list[tuple[str, Tensor]]) -> Callable[[], str]:
+    return lambda: c_function(name, fn, args)[0]
+
+
+ADVANCE = """static void tf_advance(double *x, double u, double t, double H, int S, const double *p) {
+  /* S solver steps from t over H with u held, on the simulator's grid: t + H i/S, its last
+     point t + H */
+  double next[TF_NX];
+  for (int i = 0; i < S; ++i) {
+    double a = t + H * ((double)i / S), b = i + 1 < S ? t + H * ((double)(i + 1) / S) : t + H;
+    double h = b - a;
+    tf_step(x, &u, &h, p, next);
+    for (int j = 0; j < TF_NX; ++j) x[j] = next[j];
+  }
+}
+"""
+"""C of ``tf_advance(x, u, t, H, S, p)``: one sample interval H from t in `S` solver steps
+(`tf_step`), the FMU's communication step and the C export's `NAME_step` alike."""
 
 
 def substep_rule(program: Program, *, constant: bool = False) -> str:
@@ -277,6 +283,6 @@ def model_source(program: Program, *, guid: str, nominals: list[float], title: s
     wanted = ["tf_step", "tf_field", "tf_friction"]
     wanted += ["tf_slope"] if automatic else []
     wanted += ["tf_bristle"] if program.dynamic else []
-    lines += [program.functions[name] for name in wanted]
-    lines.append(substep_rule(program))
+    lines += [program.function(name) for name in wanted]
+    lines += [substep_rule(program), ADVANCE]
     return "\n".join(lines)

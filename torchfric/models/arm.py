@@ -365,14 +365,14 @@ class ArmModel(nn.Module):
         """Total velocity-dependent friction ``b v + C(v) + offset [+ a |v|]`` at velocities `v`,
         for the module's own θ or a given θ `(k,)` (estimation coordinates). For a dynamic model,
         its steady-state curve (C replaced by `black_box`'s sliding curve)."""
-        fric, arm = self.split(self.theta_vector() if theta is None else theta)
+        return self.total_friction(v, *self.split(self.theta_vector() if theta is None else theta))
+
+    def total_friction(self, v: Tensor, fric: dict[str, Tensor], arm: dict[str, Tensor]) -> Tensor:
+        """`friction_torque` with θ already split into physical dicts (`split`)."""
         return arm_friction(
-            v,
-            self.black_box(v, fric, arm),
-            arm.get("viscous"),
-            arm.get("offset"),
+            v, self.black_box(v, fric, arm), arm.get("viscous"), arm.get("offset"),
             arm.get("asymmetric"),
-        )
+        )  # fmt: skip
 
     def max_slope(self, v_max: float, n: int = 401) -> float:
         """Largest ``|∂q̈/∂q̇|`` over ``|v| <= v_max`` [1/s]: the stiffness that limits explicit steps."""

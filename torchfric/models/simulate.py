@@ -310,12 +310,21 @@ def steady_bristles(model: ArmModel, v: Tensor, fric, arm) -> Tensor:  # type: i
     return model.black_box(v, fric, arm) / arm["lugre_sigma0"]
 
 
-def solver_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]
-    """One solver step of the model with held input `u`: `rk4_step` for a static model, the
-    stiff-stable `ArmModel.substep` for a dynamic one (state ``[q, q̇, z]``)."""
+def solver_step(
+    model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm, method: str = "rk4"
+) -> Tensor:  # type: ignore[no-untyped-def]
+    """One solver step of the model with held input `u`: for a static model `method`'s step as
+    torchdiffeq's fixed-grid solver takes it (`rk4_step`; euler ``x + h f(x)``; midpoint
+    ``x + h f(x + h/2 f(x))``), the stiff-stable `ArmModel.substep` for a dynamic one (state
+    ``[q, q̇, z]``) whatever the method."""
     if model.state_size != 2:
         return model.substep(x, u, h, fric, arm)
-    return rk4_step(model, x, u, h, fric, arm)
+    if method == "rk4":
+        return rk4_step(model, x, u, h, fric, arm)
+    k1 = model.dynamics(x, u, fric, arm)
+    if method == "midpoint":
+        return x + h * model.dynamics(x + k1 * (0.5 * h), u, fric, arm)
+    return x + h * k1
 
 
 def rk4_step(model: ArmModel, x: Tensor, u: Tensor, h: Tensor | float, fric, arm) -> Tensor:  # type: ignore[no-untyped-def]

@@ -193,13 +193,16 @@ TF_EXPORT fmi2Status fmi2GetReal(fmi2Component c, const fmi2ValueReference vr[],
                                  fmi2Real value[]) {
   tf_instance *m = (tf_instance *)c;
   double dx[TF_NX];
-  int i;
-  tf_field(m->x, &m->u, m->p, dx);
+  int i, have_dx = 0;
   for (size_t k = 0; k < nvr; ++k) {
     fmi2ValueReference r = vr[k];
     if (r == VR_U) value[k] = m->u;
     else if (tf_is_state(r, &i)) value[k] = m->x[i];
-    else if (tf_is_derivative(r, &i)) value[k] = dx[i];
+    else if (tf_is_derivative(r, &i)) {
+      if (!have_dx) tf_field(m->x, &m->u, m->p, dx); /* once, and only when asked for */
+      have_dx = 1;
+      value[k] = dx[i];
+    }
     else if (r == VR_FRICTION) tf_friction(m->x, &m->u, m->p, &value[k]);
     else if (r == VR_Q0) value[k] = m->q0;
     else if (r == VR_QDOT0) value[k] = m->qdot0;
@@ -294,8 +297,7 @@ TF_EXPORT fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPo
                                 fmi2Real communicationStepSize,
                                 fmi2Boolean noSetFMUStatePriorToCurrentPoint) {
   tf_instance *m = (tf_instance *)c;
-  double H = communicationStepSize, next[TF_NX];
-  int S;
+  double H = communicationStepSize;
   (void)noSetFMUStatePriorToCurrentPoint;
   if (m->state != ST_RUNNING) return tf_fail(m, "%s before initialization ended", "fmi2DoStep");
   if (!(H > 0.0)) return tf_fail(m, "fmi2DoStep: the step size must be positive%s", "");
@@ -303,16 +305,7 @@ TF_EXPORT fmi2Status fmi2DoStep(fmi2Component c, fmi2Real currentCommunicationPo
     m->step_S = tf_substeps(H, m->p);
     m->step_H = H;
   }
-  S = m->step_S;
-  for (int i = 0; i < S; ++i) {
-    /* the simulator's grid: t + H i/S, its last point t + H */
-    double a = currentCommunicationPoint + H * ((double)i / S);
-    double b = i + 1 < S ? currentCommunicationPoint + H * ((double)(i + 1) / S)
-                         : currentCommunicationPoint + H;
-    double h = b - a;
-    tf_step(m->x, &m->u, &h, m->p, next);
-    for (int j = 0; j < TF_NX; ++j) m->x[j] = next[j];
-  }
+  tf_advance(m->x, m->u, currentCommunicationPoint, H, m->step_S, m->p);
   for (int j = 0; j < TF_NX; ++j)
     if (!isfinite(m->x[j])) {
       m->state = ST_ERROR;
