@@ -28,6 +28,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .settings import speed_quantiles
+
 __all__ = [
     "BLOCKS",
     "CONDITION_LIMIT",
@@ -148,13 +150,10 @@ def viscous_share(
     b = values.get("viscous")
     if b is None or not b > 0 or not viscous_std or not math.isfinite(viscous_std):
         return []
-    v = speeds.detach().reshape(-1).abs().to(torch.float64)
-    v = v[torch.isfinite(v)]
-    if v.numel() > 2_000_000:  # quantile's limit is 16 M; a stride keeps it fast
-        v = v[:: v.numel() // 1_000_000]
-    if v.numel() < 2:
+    found = speed_quantiles(speeds, [0.5, 0.95])
+    if found is None:
         return []
-    v50, v95 = torch.quantile(v, torch.tensor([0.5, 0.95], dtype=torch.float64)).tolist()
+    v50, v95 = found
     if not v95 > v50:
         return []
     stick = values.get("lugre_vstick", 0.0)

@@ -35,6 +35,8 @@ __all__ = [
     "TUNING_UNITS",
     "as_vector",
     "velocity_scale",
+    "data_speeds",
+    "speed_quantiles",
 ]
 
 REFERENCE_VELOCITY = 6.64
@@ -46,20 +48,31 @@ reads those numbers at this scale."""
 TUNING_UNITS: tuple[str, ...] = ("relative", "absolute")
 
 
-def velocity_scale(experiments: Sequence[Any]) -> float:
-    """The data's velocity scale: the 95th percentile of |q̇| over the experiments (their
-    reconstructed or measured velocity; from position differences where there is none), as the
-    model's initial shape and `OddTanhFriction.min_slope` use it. 1.0 for data at rest."""
-    parts = []
-    for e in experiments:
-        v = e.qdot if e.qdot is not None else torch.diff(e.q) / e.dt
-        parts.append(v.abs().reshape(-1).to(torch.float64))
-    if not parts:
-        return 1.0
-    v = torch.cat(parts)
-    if v.numel() > 2_000_000:  # quantile's limit is 16 M; a stride keeps it fast
+def data_speeds(experiments: Sequence[Any]) -> Tensor:
+    """|q̇| of the experiments, flat: their reconstructed or measured velocity, from position
+    differences where there is none (empty for no experiments)."""
+    parts = [(e.qdot if e.qdot is not None else torch.diff(e.q) / e.dt) for e in experiments]
+    return torch.cat([v.abs().reshape(-1).to(torch.float64) for v in parts] or [torch.zeros(0)])
+
+
+def speed_quantiles(speeds: Tensor, qs: Sequence[float]) -> list[float] | None:
+    """The quantiles `qs` of ``|speeds|`` (finite entries; past 2 M entries a stride, as
+    quantile's limit is 16 M), or None for fewer than two entries."""
+    v = speeds.detach().reshape(-1).abs().to(torch.float64)
+    v = v[torch.isfinite(v)]
+    if v.numel() > 2_000_000:
         v = v[:: v.numel() // 1_000_000]
-    return float(torch.quantile(v, 0.95)) or 1.0
+    if v.numel() < 2:
+        return None
+    return torch.quantile(v, torch.tensor(list(qs), dtype=torch.float64)).tolist()
+
+
+def velocity_scale(experiments: Sequence[Any]) -> float:
+    """The data's velocity scale: the 95th percentile of |q̇| over the experiments
+    (`data_speeds`), as the model's initial shape and `OddTanhFriction.min_slope` use it. 1.0
+    for data at rest."""
+    found = speed_quantiles(data_speeds(experiments), [0.95])
+    return (found[0] or 1.0) if found else 1.0
 
 
 def as_vector(value: float | Sequence[float], n: int, name: str) -> Tensor:

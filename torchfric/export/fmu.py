@@ -176,7 +176,7 @@ def _description_xml(
     states = [index[v["name"]] for v in variables if "state" in v and v["causality"] == "local"]
     initial = sorted(set(outputs + derivs + states))
     meta_xml = " ".join(f"{k}={quoteattr(str(v))}" for k, v in meta.items())
-    sources = "\n".join(f'      <File name="{_FMU_C}"/>' for _ in (0,))
+    sources = f'      <File name="{_FMU_C}"/>'
     desc = (
         f"{'LuGre' if program.dynamic else 'static'} friction model identified by torchfric "
         f"(run {name}); u in, q, qdot and the friction torque out"

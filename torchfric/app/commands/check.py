@@ -202,8 +202,7 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     t_start = time.perf_counter() - t_start
     run = _run_dir(cfg)
     d = cfg.data
-    dt = (train[0].dt if train else 1.0) if d.velocity != "measured" else 1.0
-    settle = settling_samples(d.velocity, dt, d.velocity_cutoff_hz)
+    settle = settling_samples(d.velocity, train[0].dt, d.velocity_cutoff_hz) if train else 0
     lines = [
         _line("run", f"{cfg.name} → {run} (train claims it; check creates nothing)"),
         *_records("train", train, d.train, settle),

@@ -40,6 +40,7 @@ from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
+from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
 from ...models.arm import ArmModel
 from ..config import Config
@@ -163,11 +164,7 @@ def run_identifiability(
     values = dict(zip(model.theta_names, model.to_physical(theta).tolist(), strict=True))
     std = physical_std(model, theta, torch.diagonal(pem.cov))
     sigma = dict(zip(model.theta_names, std.tolist(), strict=True)).get("viscous")
-    speeds = torch.cat(
-        [e.qdot if e.qdot is not None else torch.diff(e.q) / e.dt for e in train]
-        or [torch.zeros(1, dtype=torch.float64)]
-    )
-    shares = viscous_share(values, speeds, viscous_std=sigma)
+    shares = viscous_share(values, data_speeds(train), viscous_std=sigma)
     return dataclasses.replace(pem.identifiability, shares=shares)
 
 
