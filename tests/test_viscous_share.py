@@ -2,8 +2,8 @@
 parameters, the run's identifiability report that carries it (`run_identifiability`), and a
 run whose metrics.json, warnings and report.html name it.
 
-The hand-set parameters are those of a user's rotary axis (b = 0.002, v50 = 2.56, v95 = 6.73
-rad/s): one fit kept a neuron at its bound ``3 / v95`` (W1 = 0.464, W2 = −0.009) and reported
+The hand-set parameters are those of a user's rotary axis (b = 0.002, v95 = 6.73 rad/s,
+median 2.56): one fit kept a neuron at its bound ``3 / v95`` (W1 = 0.464, W2 = −0.009) and reported
 b = 0.00295 ± 2e-5, 47 σ off; a fit that separates them has every neuron saturated over the
 upper speeds.
 """
@@ -50,27 +50,27 @@ def _speeds() -> torch.Tensor:
 
 
 def _slope(w1: float, w2: float) -> float:
-    # s_j = W2_j (tanh(W1_j v95) − tanh(W1_j v50)) / (v95 − v50)
-    return w2 * (math.tanh(w1 * V95) - math.tanh(w1 * V50)) / (V95 - V50)
+    # s_j = W2_j (tanh(W1_j v95) − tanh(W1_j v95/2)) / (v95/2)
+    return w2 * (math.tanh(w1 * V95) - math.tanh(w1 * V95 / 2)) / (V95 / 2)
 
 
 def test_a_neuron_pinned_at_its_bound_is_named_with_its_share_of_b() -> None:
     (share,) = viscous_share(PINNED, _speeds(), viscous_std=2.0e-5)
     assert share.names == ("viscous", "W1[2]", "W2[2]")
-    assert (share.v50, share.v95) == pytest.approx((V50, V95), rel=1e-12)
+    assert (share.v_half, share.v95) == pytest.approx((V95 / 2, V95), rel=1e-6)
     assert share.slope == pytest.approx(_slope(0.464, -0.009), rel=1e-12)
-    assert share.share == pytest.approx(-0.1215, abs=5e-4)  # the user's −12.2 %
-    assert share.sigmas == pytest.approx(-17.9, abs=0.05)  # the user's 17.8 σ_b
+    assert share.share == pytest.approx(-0.0730, abs=5e-4)  # the user's record: −6.6 %
+    assert share.sigmas == pytest.approx(-10.76, abs=0.05)  # the user's record: 9.6 σ_b
     assert share.message == (
         "viscous and neuron 2 (W1[2], W2[2]) are not separately identifiable over this data's "
-        "speeds: the neuron's tanh still rises between v50 = 2.56 and v95 = 6.73 (its slope "
-        "there is -12 % of b, 18 σ_b), so b = 0.00295 is not the viscous term alone; raise "
+        "speeds: the neuron's tanh still rises between v95/2 = 3.37 and v95 = 6.73 (its slope "
+        "there is -7 % of b, 11 σ_b), so b = 0.00295 is not the viscous term alone; raise "
         "model.saturation (to twice its value, 6 for the default 3) so that every neuron "
-        "saturates below the data's median speed"
+        "saturates below half the data's top speed"
     )
     d = share.to_dict()
     assert d["parameters"] == ["viscous", "W1[2]", "W2[2]"]
-    assert d["share"] == share.share and (d["v50"], d["v95"]) == (share.v50, share.v95)
+    assert d["share"] == share.share and (d["v_half"], d["v95"]) == (share.v_half, share.v95)
 
 
 def test_a_saturated_fit_is_not_flagged() -> None:
@@ -105,7 +105,7 @@ def test_models_without_a_viscous_term_or_tanh_neurons_are_never_flagged() -> No
 def test_lugre_reads_its_sliding_curve_above_the_stick_velocity() -> None:
     slow = viscous_share({**PINNED, "lugre_vstick": 0.05}, _speeds(), viscous_std=2.0e-5)
     assert [s.names for s in slow] == [("viscous", "W1[2]", "W2[2]")]
-    # a curve held flat up to beyond v95 has no slope between v50 and v95
+    # a curve held flat up to beyond v95 has no slope between v95/2 and v95
     assert viscous_share({**PINNED, "lugre_vstick": 8.0}, _speeds(), viscous_std=2.0e-5) == []
 
 
@@ -142,7 +142,9 @@ def test_the_runs_report_names_the_neuron_as_a_warning(dynamic: str) -> None:
     train = [Experiment(t, torch.zeros_like(t), torch.cumsum(v, 0) * 1e-3, v)]
     ident = run_identifiability(model, _covariance(model, 2.0e-5), train)
     assert not ident.ok
-    assert ident.groups == [(["viscous", "W1[2]", "W2[2]"], "slope -12 % of b between v50 and v95")]
+    assert ident.groups == [
+        (["viscous", "W1[2]", "W2[2]"], "slope -7 % of b between v95/2 and v95")
+    ]
     (line,) = confidence._messages(ident)
     assert line.startswith("viscous and neuron 2 (W1[2], W2[2]) are not separately")
     d = ident.to_dict()  # the existing keys and shape stay; the share comes beside them
@@ -151,7 +153,7 @@ def test_the_runs_report_names_the_neuron_as_a_warning(dynamic: str) -> None:
     assert d["pairs"] == [] and d["directions"] == [] and d["messages"] == [line]
     (entry,) = d["viscous_shares"]
     assert entry["parameters"] == ["viscous", "W1[2]", "W2[2]"]
-    assert entry["v50"] == pytest.approx(V50) and entry["v95"] == pytest.approx(V95)
+    assert entry["v_half"] == pytest.approx(V95 / 2) and entry["v95"] == pytest.approx(V95)
     assert entry["viscous_std"] == pytest.approx(2.0e-5, rel=1e-9)
     # the same data with a σ_b ten times wider: nothing to say
     assert run_identifiability(model, _covariance(model, 2.0e-4), train).ok
@@ -183,7 +185,7 @@ def test_a_run_carries_the_check_to_metrics_warnings_and_report(
     # v95 is the speed the bound W1 > saturation / v95 was made from
     v95 = shares[0]["v95"]
     assert result.model.friction.min_slope * v95 == pytest.approx(3.0, rel=1e-9)
-    assert 0 < shares[0]["v50"] < v95
+    assert shares[0]["v_half"] == pytest.approx(v95 / 2)
     report = (tmp_path / "run" / "report.html").read_text()
     named = ", ".join(share["parameters"][1:])
     head = "viscous and neuron"
@@ -213,3 +215,20 @@ def test_slow_neurons_whose_slopes_cancel_leave_b_alone() -> None:
     assert two.names == ("viscous", "W1[3]", "W2[3]", "W1[2]", "W2[2]")
     assert two.share == pytest.approx(-0.28, rel=1e-9)
     assert two.message.startswith("viscous and neurons 3 and 2 (W1[3], W2[3], W1[2], W2[2])")
+
+
+def test_a_stribeck_neuron_on_a_stick_slip_record_is_not_a_shared_slope() -> None:
+    """A linear axis that rests half the time (median |q̇| 4e-5 m/s, v95 0.227 m/s): the neuron
+    that draws its Stribeck dip (W1 = 51.5 s/m, saturated by 0.06 m/s) has a large mean slope
+    between the median and v95, but none over the upper half of the speed range, where b is
+    the friction's slope. A fit whose neuron pair does carry slope there is still named."""
+    rest = torch.full((600,), 4e-5)
+    moving = torch.linspace(0.0, 0.24, 400)
+    speeds = torch.cat([rest, moving])
+    fit = {"W1[1]": 1294.0, "W1[2]": 51.54, "W1[3]": 13.22, "W2[1]": 6.667,
+           "W2[2]": -2.657, "W2[3]": 0.0102, "viscous": 7.75}  # fmt: skip
+    assert viscous_share(fit, speeds, viscous_std=5.3e-5) == []
+    pair = {"W1[1]": 17.22, "W1[2]": 19.17, "W1[3]": 2212.0, "W2[1]": 27.69,
+            "W2[2]": -28.68, "W2[3]": 6.19, "viscous": 1.23}  # fmt: skip
+    (share,) = viscous_share(pair, speeds, viscous_std=7.8e-6)
+    assert share.names[:3] == ("viscous", "W1[1]", "W2[1]") and share.share > 1.0
