@@ -355,8 +355,30 @@ def test_rebuilt_from_its_sources_by_fmpy(exported: dict, tmp_path: pathlib.Path
     unzipped = extract(str(stripped), str((tmp_path / "unzipped").resolve()))
     build_platform_binary(unzipped)
     t, u = exported["t"], exported["u"]
-    sig = np.array(list(zip(t.numpy(), u.numpy(), strict=True)), dtype=[("time", float), ("u", float)])
+    sig = np.array(
+        list(zip(t.numpy(), u.numpy(), strict=True)), dtype=[("time", float), ("u", float)]
+    )
     res = simulate_fmu(unzipped, fmi_type="CoSimulation", stop_time=float(t[-1]),
                        output_interval=DT, input=sig, start_values={"q0": X0[0], "qdot0": X0[1]},
                        output=["q"])  # fmt: skip
     assert np.array_equal(res["q"], np.array(exported["seen"][key]["cs"]["q"]))
+
+
+@pytest.mark.parametrize(
+    ("data", "unit"),
+    [({"position_unit": "counts", "counts_per_m": 1e6}, "m"), ({"position_unit": "mm"}, "m"),
+     ({"position_unit": "counts", "counts_per_rev": 4096.0}, "rad")],
+)  # fmt: skip
+def test_the_units_follow_the_datas_axis(tmp_path: pathlib.Path, data: dict, unit: str) -> None:
+    """Encoder counts per metre are a linear axis (found by a user's walk: its FMU said rad)."""
+    from fmpy import read_model_description
+
+    raw = torch.load(CHECKPOINTS[0], weights_only=False)
+    raw["config"]["data"].update(data)
+    ck = tmp_path / "axis.pt"
+    torch.save(raw, ck)
+    assert main(["export", str(ck), "--out", str(tmp_path / "axis.fmu")]) == 0
+    units = {
+        v.name: v.unit for v in read_model_description(str(tmp_path / "axis.fmu")).modelVariables
+    }
+    assert units["q"] == unit and units["qdot"] == f"{unit}/s"

@@ -8,6 +8,7 @@ import argparse
 import hashlib
 import pathlib
 
+from ...data.units import si_unit
 from ...errors import TorchfricError
 from .evaluate import refuse_overwrite
 
@@ -43,7 +44,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"wrote {c_path} and {h_path}: {stem}_friction(v), {stem}_step(state, u, dt), "
               f"{stem}_init(state, q0, qdot0)")  # fmt: skip
         return 0
-    linear = raw.get("config", {}).get("data", {}).get("position_unit") in ("m", "mm")
+    data = checkpoint_config(raw).data
+    linear = si_unit(data.position_unit, data.counts_per_m) == "m"  # counts per metre too
     info = export_fmu(model, out, name=name, method=sim.method, substeps=sim.substeps, dt=dt,
                       linear=linear, meta=meta)  # fmt: skip
     print(f"wrote {info.path} ({info.size / 1024:.0f} KiB, FMI 2.0 Model Exchange and "
