@@ -33,15 +33,19 @@ import torch
 import torchfric
 
 M, CM, B, FC, VS, EPS, CPM = 2.5, 12.0, 8.0, 4.0, 0.02, 1e-4, 1_000_000
+FS_DEFAULT, DIST_DEFAULT = 6.0, 0.3  # the carriage `benchmarks/tracking.py` tracks [N]
 
 
-def friction(v: float, fs: float) -> float:
-    return (FC + (fs - FC) * math.exp(-((v / VS) ** 2))) * math.tanh(v / EPS) + B * v
+def friction(v: float, fs: float, fc: float = FC) -> float:
+    """The carriage's friction force [N] at velocity v [m/s]: b v and the Stribeck law."""
+    return (fc + (fs - fc) * math.exp(-((v / VS) ** 2))) * math.tanh(v / EPS) + B * v
 
 
 def simulate(seconds: float, seed: int, fs: float, disturbance: float, dt: float = 1e-3,
-             sub: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-    """(t, u, encoder counts): RK4 with `sub` steps per sample, the PD loop at the samples."""
+             sub: int = 10, change: tuple[float, float] | None = None,
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(t, u, encoder counts, true velocity): RK4 with `sub` steps per sample, the PD loop at
+    the samples; `change` = (time, factor): Fc and Fs times factor from that time on."""
     rng = np.random.default_rng(seed)
     n = round(seconds / dt)
     t = np.arange(n) * dt
@@ -53,14 +57,15 @@ def simulate(seconds: float, seed: int, fs: float, disturbance: float, dt: float
     dist = np.fft.irfft(spectrum, n)
     dist = disturbance * dist / dist.std()
     q = v = 0.0
-    Q, U, h = np.empty(n), np.empty(n), dt / sub
+    Q, U, V, h = np.empty(n), np.empty(n), np.empty(n), dt / sub
     for k in range(n):
         u = min(3.0, max(-3.0, 40.0 * (ref[k] - q) - 1.5 * v))
-        Q[k], U[k] = q, u
+        Q[k], U[k], V[k] = q, u, v
         force = CM * u + dist[k]
+        gain = change[1] if change is not None and t[k] >= change[0] else 1.0
 
-        def acc(w: float, force: float = force) -> float:
-            return (force - friction(w, fs)) / M
+        def acc(w: float, force: float = force, gain: float = gain) -> float:
+            return (force - friction(w, gain * fs, gain * FC)) / M
 
         for _ in range(sub):
             a1 = acc(v)
@@ -72,10 +77,11 @@ def simulate(seconds: float, seed: int, fs: float, disturbance: float, dt: float
             a4 = acc(v4)
             q += h / 6 * (v + 2 * v2 + 2 * v3 + v4)
             v += h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
-    return t, U, np.round(Q * CPM).astype(np.int64)
+    return t, U, np.round(Q * CPM).astype(np.int64), V
 
 
-def write(path: pathlib.Path, t: np.ndarray, u: np.ndarray, counts: np.ndarray) -> None:
+def write(path: pathlib.Path, t: np.ndarray, u: np.ndarray, counts: np.ndarray, *_: object) -> None:
+    """The record as lab software writes it (semicolons, decimal commas, ms, counts)."""
     with open(path, "w", newline="\r\n", encoding="utf-8") as f:
         f.write("Zeit [ms];Strom [A];Position [counts]\n")
         for tk, uk, ck in zip(t, u, counts, strict=True):
@@ -83,7 +89,8 @@ def write(path: pathlib.Path, t: np.ndarray, u: np.ndarray, counts: np.ndarray) 
                     + f";{ck}\n")  # fmt: skip
 
 
-def ceiling(t: np.ndarray, u: np.ndarray, counts: np.ndarray, fs: float) -> dict[float, float]:
+def ceiling(t: np.ndarray, u: np.ndarray, counts: np.ndarray, _v: np.ndarray, fs: float,
+            ) -> dict[float, float]:  # fmt: skip
     """Validation FIT of the true machine drawn by torchfric's model class (one tanh neuron of
     slope W1 and height Fc, b, M, c_m true; Coulomb machines only: the Stribeck dip is not in
     one neuron), simulated with the default sub-step rule."""

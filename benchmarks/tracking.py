@@ -1,12 +1,12 @@
-"""On-line tracking and change detection on three machines of different scale (issues 24, 33):
+"""On-line tracking and change detection on four machines of different scale (issues 24, 33):
 detection delay, false alarms, the estimate after a change, throughput. Prints a table.
 
-    python benchmarks/tracking.py                              # all three machines, seeds 0 1 2
+    python benchmarks/tracking.py                              # all four machines, seeds 0 1 2
     python benchmarks/tracking.py --machines rig --seeds 0 1 2 3 4 5
     python benchmarks/tracking.py --machines axis linear --cache /tmp/trk   # reuse models, records
 
 Every row runs the real command, ``torchfric track CHECKPOINT REC.csv --out DIR`` with every
-``[track]`` default, on one of three machines:
+``[track]`` default, on one of four machines:
 
 - ``rig``: the built-in rig, ``checkpoints/arm_tanh_ekf.pt`` (the paper's tanh(3) EKF). Change
   records from `torchfric.data.rig.changing_record`: 30 s of the identified rig, then 90 s of
@@ -25,6 +25,12 @@ Every row runs the real command, ``torchfric track CHECKPOINT REC.csv --out DIR`
   whenever the axis slides, so "after exciting motion" counts from the first sample at or
   after the change with |q̇| above a tenth of the Stribeck velocity (sliding: a resting axis
   creeps at ~1e-3 vs, and at rest no friction level shows).
+- ``carriage``: the stick-slip linear carriage of `benchmarks/carriage.py` (2.5 kg, c_m 12,
+  b 8 N s/m, Fc 4 N, Fs 6 N at 0.02 m/s, a 1 µm encoder, a 15-Hz load disturbance of 0.3 N),
+  simulated outside torchfric and written as lab software writes it (semicolons, decimal
+  commas, ms, counts); identified as a user would (``init --c-m 12 --counts-per-m 1e6``,
+  ``train``); change records: 60 s, then Fc and Fs × 1.4. "After exciting motion" counts from
+  the first sample after the change with |q̇| > vs/10 (it sticks for up to 2 s at a time).
 - every machine: 10 minutes of unchanged data (another seed and excitation): false alarms.
 
 Reported: the delay of the first detection after the change; false alarms (detections before
@@ -59,6 +65,9 @@ from torchfric.data.axis import (
 )
 from torchfric.data.rig import RigParameters, changing_record, excitation, simulate_rig
 from torchfric.estimators.metrics import friction_curve_error
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import carriage  # noqa: E402  (benchmarks/carriage.py: the stick-slip carriage's simulator)
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "checkpoints" / "arm_tanh_ekf.pt"
@@ -226,9 +235,72 @@ def axis_rows(name: str, d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
     return rows
 
 
+def carriage_curve(model, gain: float, v95: float) -> float:  # type: ignore[no-untyped-def]
+    """The steady-state curve's RMS error against the carriage's (Fc, Fs × gain) over ±v95."""
+    v = np.linspace(-v95, v95, 1601)
+    v = v[np.abs(v) > carriage.VS / 10]
+    fs = carriage.FS_DEFAULT * gain
+    ref = torch.as_tensor([carriage.friction(x, fs, gain * carriage.FC) for x in v])
+    with torch.no_grad():
+        return 100 * friction_curve_error(model, torch.as_tensor(v), ref)
+
+
+def carriage_rows(d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
+                  minutes: float) -> list[dict]:  # fmt: skip
+    """The stick-slip carriage: a user's model from its lab-style record, then `track`."""
+    folder = cache / "carriage"
+    folder.mkdir(parents=True, exist_ok=True)
+    fs, dist = carriage.FS_DEFAULT, carriage.DIST_DEFAULT
+
+    def record(name: str, seconds: float, seed: int, change: tuple[float, float] | None) -> dict:
+        path = folder / f"{name}.npz"
+        if not path.exists():
+            t, u, c, v = carriage.simulate(seconds, seed, fs, dist, change=change)
+            np.savez(path, t=t, u=u, counts=c, v=v)
+        with np.load(path) as f:
+            rec = {k: f[k] for k in f.files}
+        carriage.write(folder / f"{name}.csv", rec["t"], rec["u"], rec["counts"])
+        return rec
+
+    run = folder / "run"
+    if not sorted(run.glob("*.pt")):
+        record("ident", 30.0, IDENT_SEED, None)
+        for argv in (["init", "ident.csv", "--c-m", "12", "--counts-per-m", "1e6", "--out",
+                      "cfg.toml", "--force"],
+                     ["train", "cfg.toml", "--out", "run", "--quiet", "--overwrite"]):  # fmt: skip
+            done = subprocess.run([*CLI, *argv], cwd=folder, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise SystemExit(f"torchfric {argv[0]} failed: {done.stderr.strip()[-500:]}")
+    ckpt = sorted(run.glob("*.pt"))[0]
+    model0 = load_checkpoint(ckpt)
+    rows = []
+    for seed in seeds:
+        rec = record(f"change{seed}", BEFORE + AFTER, 300 + seed, (BEFORE, 1.4))
+        rec = {"t": rec["t"], "change": np.float64(BEFORE), "v": rec["v"]}
+        events, rate, wall = track(ckpt, folder / f"change{seed}.csv", d / f"carriage_c{seed}")
+        v95 = float(np.quantile(np.abs(rec["v"]), 0.95))
+        sliding = (rec["t"] >= BEFORE) & (np.abs(rec["v"]) > 0.1 * carriage.VS)
+        final = load_checkpoint(d / f"carriage_c{seed}" / "final.pt")
+        rows.append(row(f"carriage, change at {BEFORE:g} s, seed {seed}", rec, events, final,
+                        carriage.M, carriage_curve(final, 1.4, v95),
+                        carriage_curve(model0, 1.4, v95), rate, wall,
+                        float(rec["t"][np.argmax(sliding)])))  # fmt: skip
+    quiet = record(f"quiet{minutes:g}", minutes * 60, QUIET_SEED, None)
+    events, rate, wall = track(ckpt, folder / f"quiet{minutes:g}.csv", d / "carriage_quiet")
+    final = load_checkpoint(d / "carriage_quiet" / "final.pt")
+    v95 = float(np.quantile(np.abs(quiet["v"]), 0.95))
+    rows.append(row(f"carriage, unchanged, {minutes:g} min", {"t": quiet["t"]}, events, final,
+                    carriage.M, carriage_curve(final, 1.0, v95),
+                    carriage_curve(model0, 1.0, v95), rate, wall, None))  # fmt: skip
+    return rows
+
+
+MACHINES = ["rig", *AXES, "carriage"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--machines", nargs="+", choices=["rig", *AXES], default=["rig", *AXES])
+    ap.add_argument("--machines", nargs="+", choices=MACHINES, default=MACHINES)
     ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2])
     ap.add_argument("--quiet-minutes", type=float, default=10.0)
     ap.add_argument("--cache", type=pathlib.Path, default=None,
@@ -243,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         for m in args.machines:
             if m == "rig":
                 rows += rig_rows(d, args.seeds, args.quiet_minutes)
+            elif m == "carriage":
+                rows += carriage_rows(d, cache, args.seeds, args.quiet_minutes)
             else:
                 rows += axis_rows(m, d, cache, args.seeds, args.quiet_minutes)
     print("| record | samples | detection delay | after exciting motion | false alarms | "

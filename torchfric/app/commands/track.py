@@ -216,7 +216,7 @@ class _Session:
         detector = None
         if det is not None:
             detector = {
-                "statistic": "one-sided CUSUM of the NIS block means, standardised by a baseline",
+                "statistic": "one-sided CUSUM of the NIS block means, each scored by min(z, its rarity in the calibration)",
                 "block_samples": det.block,
                 "threshold": det.threshold,
                 "false_alarm_hours": self.settings.false_alarm_hours,

@@ -374,7 +374,8 @@ class TrackConfig(TrackSettings, TableSection):
             change's hold-off (the machine is assumed unchanged then).
         holdoff: after a change, how long detection pauses while θ re-converges.
         false_alarm_hours: the mean time between false alarms on unchanged data that the
-            detector's threshold is designed for (a CUSUM on the standardised NIS block means).
+            detector's threshold is designed for (a CUSUM on the NIS block means, each scored by
+            the smaller of its standardised value and its rarity in the calibration).
         reopen: the variance added to each θ entry's ``P_θθ`` after a change, so that θ
             converges to the changed machine quickly.
         detect: run the change detector.
