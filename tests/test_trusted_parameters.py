@@ -203,3 +203,34 @@ def test_an_unidentifiable_model_is_named_in_metrics_and_summary(records, tmp_pa
     assert any("c_m" in w and "inertia" in w for w in result.metrics["warnings"])
     report = (tmp_path / "run" / "report.html").read_text()
     assert "<h2>Identifiability</h2>" in report and named[0].split(" are ")[0] in report
+
+
+def test_a_rejected_polish_reports_sigma_that_include_its_distance(
+    records, tmp_path, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """When the prediction-error optimum simulates worse and the kept θ stays, its covariance is
+    the sandwich's at it plus its offset from the optimum, ``cov + o oᵀ``: the reported
+    correlation is that of the sandwich alone, the offset is in metrics.json, and every σ is at
+    least its parameter's offset (here the rejection is forced: the polished θ is scored 0)."""
+    import torchfric.app.run.confidence as confidence
+
+    scores = iter([0.0, 100.0])  # the polished θ first, then the kept one
+    monkeypatch.setattr(confidence, "_score", lambda *args: next(scores))
+    cfg = _write(tmp_path / "rejected", records, 1.0, AXIS.c_m, False)
+    result = torchfric.fit(str(cfg), out=str(tmp_path / "run"), quiet=True)
+    m = result.metrics
+    assert "polish_rejected" in m and "polished" not in m
+    offset = torch.tensor(m["covariance"]["offset_to_optimum"], dtype=torch.float64)
+    assert offset.abs().max() > 0
+    state = torchfric.read_checkpoint(result.checkpoint)["estimator"]["state"]
+    P = torch.as_tensor(state["P_theta"], dtype=torch.float64)
+    torch.testing.assert_close(P, P.T)
+    assert bool((torch.diagonal(P) >= offset**2).all())
+    sandwich = P - torch.outer(offset, offset)
+    d = torch.sqrt(torch.diagonal(sandwich))
+    torch.testing.assert_close(
+        sandwich / torch.outer(d, d),
+        torch.tensor(m["covariance"]["correlation"], dtype=torch.float64),
+        rtol=1e-8,
+        atol=1e-10,
+    )

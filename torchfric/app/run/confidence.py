@@ -10,8 +10,8 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
    likeliest, the first whose filter stays healthy);
 2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
    (`pem_refine`), kept only when it simulates the validation records (else the
-   identification records) no worse than the kept θ by 0.1 point; otherwise θ stays and the
-   σ is taken at it;
+   identification records) no worse than the kept θ by 0.1 point; otherwise θ stays, the σ
+   is taken at it and its offset from the optimum is added (`offset_covariance`);
 3. the sandwich covariance there (`pem_covariance`).
 
 The filter's own matrix stays beside it (``filter_P_theta``), so does the kept pass's θ when
@@ -45,7 +45,13 @@ from ...estimators.uncertainty import physical_std
 from ...models.arm import ArmModel
 from ..config import Config
 
-__all__ = ["attach_covariance", "attach_oe_covariance", "run_identifiability", "PHYSICAL"]
+__all__ = [
+    "attach_covariance",
+    "attach_oe_covariance",
+    "offset_covariance",
+    "run_identifiability",
+    "PHYSICAL",
+]
 
 PHYSICAL = ("inertia", "viscous", "offset", "gravity", "asymmetric", "c_m", "lugre_")
 """White-box names: a non-identifiable direction that involves one of them is a warning; one
@@ -91,17 +97,19 @@ def attach_covariance(
         )
         return
     judged = validation or train
+    offset = None
     if (
         len(trace) > 1
         and _score(cfg, final, polished, judged) < _score(cfg, final, theta, judged) - 0.1
     ):
         # The one-step prediction error's optimum simulates worse (a model class that cannot
         # reach the machine, e.g. a static curve for LuGre friction, trades the long horizon
-        # for the short one): the kept θ stays, with the σ at it and a warning of how far the
-        # prediction-error optimum lies (`newton_step_sigma`).
+        # for the short one): the kept θ stays. Its σ are the sandwich's at it plus its offset
+        # from the optimum (`offset_covariance`), and a warning says how far that lies
+        # (`newton_step_sigma`).
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem = at_kept
+        pem, offset = at_kept, polished - theta
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         final.set_theta(polished)
         state["filter_theta"], state["theta"] = theta, polished.clone()
@@ -111,10 +119,12 @@ def attach_covariance(
             f"innovation log-likelihood +{trace[-1] - trace[0]:.3g}"
         )
     state["filter_P_theta"] = P_filter
-    state["P_theta"] = pem.cov
+    state["P_theta"] = pem.cov if offset is None else offset_covariance(pem.cov, offset)
     extra["covariance"] = {**pem.to_dict(), "noise_model": {
         "q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
         "measure": tuning.measure}}  # fmt: skip
+    if offset is not None:
+        extra["covariance"]["offset_to_optimum"] = offset.tolist()
     ident = run_identifiability(final, pem, train)
     extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
     say(
@@ -122,6 +132,16 @@ def attach_covariance(
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth})"
         + ("" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)")
     )
+
+
+def offset_covariance(cov: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
+    """The covariance of a reported θ that is `offset` away from the optimum whose spread is
+    `cov`: ``cov + offset offsetᵀ``. If the optimum lies within its σ of the truth, the
+    reported θ lies within ``√(σ_i² + offset_i²)`` of it, entry by entry, as often or more:
+    the ± σ then cover the distance the run chose to keep (a rejected polish: the kept θ
+    simulates better, the optimum predicts one step better)."""
+    offset = torch.as_tensor(offset, dtype=cov.dtype).reshape(-1)
+    return cov + torch.outer(offset, offset)
 
 
 def attach_oe_covariance(
