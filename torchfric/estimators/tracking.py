@@ -48,6 +48,7 @@ a record as it comes, chunk by chunk, from a checkpoint's θ and ``P_θθ``:
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -140,7 +141,7 @@ class NisDetector:
     threshold: float
     _pending: list[float] = field(default_factory=list)
     _baseline: list[float] = field(default_factory=list)
-    _sorted: np.ndarray | None = None  # the calibration's block means, sorted
+    _sorted: list[float] | None = None  # the calibration's block means, sorted
     _mean: float = float("nan")
     _std: float = float("nan")
     _tail: tuple[float, float, float] = (math.inf, 1.0, 0.0)  # (ln u, β, share beyond u)
@@ -166,15 +167,16 @@ class NisDetector:
     def score(self, mean: float) -> float:
         """A block mean's score: ``min((m − μ)/σ, rarity)``, the rarity being the normal score
         of its rank among the calibration blocks (ties count half) up to the tail's threshold
-        u, beyond it ``−Φ⁻¹(share · exp(−(ln m − ln u)/β))`` (`_fit_tail`)."""
+        u, beyond it ``−Φ⁻¹(share · exp(−(ln m − ln u)/β))`` (`_calibrate`)."""
         assert self._sorted is not None
         z = (mean - self._mean) / self._std
         log_u, beta, share = self._tail
-        if mean > 0.0 and math.log(mean) > log_u:
-            tail = share * math.exp(-(math.log(mean) - log_u) / beta)
+        log_m = math.log(mean) if mean > 0.0 else -math.inf
+        if log_m > log_u:
+            tail = share * math.exp(-(log_m - log_u) / beta)
             return min(z, -_NORMAL.inv_cdf(max(tail, 1e-300)))
-        lo = int(np.searchsorted(self._sorted, mean, side="left"))
-        hi = int(np.searchsorted(self._sorted, mean, side="right"))
+        lo = bisect.bisect_left(self._sorted, mean)
+        hi = bisect.bisect_right(self._sorted, mean)
         return min(z, _NORMAL.inv_cdf((lo + 0.5 * (hi - lo) + 0.5) / (len(self._sorted) + 1)))
 
     def _calibrate(self) -> None:
@@ -182,7 +184,7 @@ class NisDetector:
         exponential (peaks over a threshold), u the value below the top `TAIL_FRACTION` (at
         least 5 blocks), β the mean excess of ln m over ln u among them (at least 1e-3)."""
         b = np.sort(np.asarray(self._baseline))
-        self._sorted = b
+        self._sorted = b.tolist()
         self._mean, self._std = float(b.mean()), float(max(b.std(), 1e-12 * abs(b.mean())))
         n = len(b)
         k = min(n - 1, max(5, round(TAIL_FRACTION * n)))

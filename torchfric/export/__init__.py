@@ -10,7 +10,4 @@ from __future__ import annotations
 from .csource import export_c
 from .fmu import FMUInfo, export_fmu, model_identifier
 
-__all__ = ["FORMATS", "FMUInfo", "export_c", "export_fmu", "model_identifier"]
-
-FORMATS: tuple[str, ...] = ("torchscript", "fmu", "c")
-"""`torchfric export --format` values."""
+__all__ = ["FMUInfo", "export_c", "export_fmu", "model_identifier"]

@@ -122,5 +122,5 @@ void {ident}_init(double *state, double q0, double qdot0) {{
     header = _header(ident, n, k, program.dynamic, meta or {})
     h_path = out.with_suffix(".h")
     atomic_write_text(h_path, header)
-    atomic_write_text(out, "\n".join(p for p in parts if p is not None))
+    atomic_write_text(out, "\n".join(parts))
     return out, h_path

@@ -292,13 +292,13 @@ def export_fmu(
     body = model_source(program, guid="{GUID}", nominals=_nominals(model), title=name)
     probe = _description_xml(program, guid="{GUID}", ident=ident, name=name, linear=linear,
                              dt=dt, meta=meta, when="")  # fmt: skip
-    digest = hashlib.sha256((body + probe + (_C_DIR / _FMU_C).read_text()).encode()).hexdigest()
+    sources = {f: (_C_DIR / f).read_text(encoding="utf-8") for f in _SOURCES}
+    digest = hashlib.sha256((body + probe + sources[_FMU_C]).encode()).hexdigest()
     guid = (
         "{" + f"{digest[:8]}-{digest[8:12]}-{digest[12:16]}-{digest[16:20]}-{digest[20:32]}" + "}"
     )
     description = _description_xml(program, guid=guid, ident=ident, name=name, linear=linear,
                                    dt=dt, meta=meta, when=when)  # fmt: skip
-    sources = {f: (_C_DIR / f).read_text(encoding="utf-8") for f in _SOURCES}
     sources["torchfric_model.c"] = body.replace("{GUID}", guid)
     binary = _compile(sources, ident)
     plat = platform_folder()

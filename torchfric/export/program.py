@@ -188,7 +188,7 @@ def model_program(model: ArmModel, *, method: str = "rk4", substeps: int | str =
 
 
 def _tracer(name: str, fn: Any, args: list[tuple[str, Tensor]]) -> Callable[[], str]:
-    return lambda: c_function(name, fn, args)[0]
+    return lambda: c_function(name, fn, args)
 
 
 ADVANCE = """static void tf_advance(double *x, double u, double t, double H, int S, const double *p) {

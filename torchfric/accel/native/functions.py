@@ -31,10 +31,10 @@ def _ctype(code: str) -> str:
 
 def c_function(
     name: str, fn: Callable[..., Tensor | tuple[Tensor, ...]], args: Sequence[tuple[str, Tensor]]
-) -> tuple[str, list[int]]:
+) -> str:
     """C source of ``static void name(args…, out0, out1, …)`` computing `fn` on the named
-    float64 argument tensors (their values are only examples for the trace), and the number of
-    entries of each output. A `NativeUnavailable` names an operation without a C form."""
+    float64 argument tensors (their values are only examples for the trace). A
+    `NativeUnavailable` names an operation without a C form."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
     examples = [t.detach().to(torch.float64) for _, t in args]
@@ -67,7 +67,7 @@ def c_function(
         if isinstance(value, _Sym):
             src = f"v{value.id}" if value.dtype == "d" else f"(double)v{value.id}"
         else:
-            src = _literal(value, "d" if _dtype(value) == "d" else _dtype(value))
+            src = _literal(value, _dtype(value))
         lines.append(f"  {target}[{j}] = {src};")
     lines.append("}")
-    return "\n".join(lines) + "\n", [max(int(r.size), 1) for r in results]
+    return "\n".join(lines) + "\n"

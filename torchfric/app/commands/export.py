@@ -5,10 +5,8 @@ torchfric), an FMI 2.0 FMU or C99 sources (`torchfric.export`)."""
 from __future__ import annotations
 
 import argparse
-import hashlib
 import pathlib
 
-from ...data.units import si_unit
 from ...errors import TorchfricError
 from .evaluate import refuse_overwrite
 
@@ -16,7 +14,7 @@ __all__ = ["cmd_export"]
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from ..artifacts import checkpoint_config, checkpoint_model, read_checkpoint
+    from ..artifacts import checkpoint_config, checkpoint_model, read_checkpoint, sha256_file
 
     out = pathlib.Path(args.out)
     fmt = _format(getattr(args, "format", None), out)
@@ -28,13 +26,14 @@ def cmd_export(args: argparse.Namespace) -> int:
     dt = args.dt
     if dt is None:
         dt = float(raw.get("metrics", {}).get("dt", 1e-3))
-    sim = checkpoint_config(raw).simulation
+    cfg = checkpoint_config(raw)
+    sim = cfg.simulation
     if fmt == "torchscript":
         return _torchscript(model, args.out, dt, sim)
     from ...export import export_c, export_fmu
 
     name = str(raw.get("name") or pathlib.Path(args.checkpoint).stem)
-    digest = hashlib.sha256(pathlib.Path(args.checkpoint).read_bytes()).hexdigest()
+    digest = sha256_file(args.checkpoint)
     meta = {"checkpoint": pathlib.Path(args.checkpoint).name, "created": raw.get("created", ""),
             "sha256": digest, "torchfric_version": raw.get("torchfric_version", "")}  # fmt: skip
     if fmt == "c":
@@ -44,8 +43,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         print(f"wrote {c_path} and {h_path}: {stem}_friction(v), {stem}_step(state, u, dt), "
               f"{stem}_init(state, q0, qdot0)")  # fmt: skip
         return 0
-    data = checkpoint_config(raw).data
-    linear = si_unit(data.position_unit, data.counts_per_m) == "m"  # counts per metre too
+    linear = cfg.data.axis_unit == "m"  # counts per metre too
     info = export_fmu(model, out, name=name, method=sim.method, substeps=sim.substeps, dt=dt,
                       linear=linear, meta=meta)  # fmt: skip
     print(f"wrote {info.path} ({info.size / 1024:.0f} KiB, FMI 2.0 Model Exchange and "
@@ -63,7 +61,7 @@ def _format(asked: str | None, out: pathlib.Path) -> str:
     implied = _SUFFIX.get(out.suffix.lower(), "torchscript")
     if asked is None or asked == implied:
         return implied
-    want = {"fmu": ".fmu", "c": ".c"}.get(asked)
+    want = {v: k for k, v in _SUFFIX.items()}.get(asked)
     fix = f"end --out in {want}" if want else "give --out a name not ending in .fmu or .c"
     raise TorchfricError(f"--out {out} does not fit --format {asked}: {fix}")
 

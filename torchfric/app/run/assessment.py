@@ -152,15 +152,12 @@ def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
     if not far:
         return None
     if "offset_to_optimum" in cov:  # the ± σ include the distance (`offset_covariance`)
-        return (
-            f"the kept θ is not at the optimum of its error criterion ({cov.get('method')}): "
-            f"{', '.join(far)} away, in σ of that optimum; it simulates better and was kept, and "
-            "its ± σ include that distance"
-        )
+        tail = ", in σ of that optimum; it simulates better and was kept, and its ± σ include that distance"
+    else:
+        tail = "; its ± σ describe the spread around that optimum, so the error may exceed them"
     return (
         f"the kept θ is not at the optimum of its error criterion ({cov.get('method')}): "
-        f"{', '.join(far)} away; its ± σ describe the spread around that optimum, so the error "
-        "may exceed them"
+        f"{', '.join(far)} away{tail}"
     )
 
 

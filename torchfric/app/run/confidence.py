@@ -177,8 +177,9 @@ def run_identifiability(
     model: ArmModel, pem: PEMCovariance, train: list[Experiment]
 ) -> Identifiability:
     """The run's identifiability report: the covariance's (`pem.identifiability`) and the tanh
-    neurons that take part of b (`viscous_share`) at ``pem.theta``, b's σ the reported one
-    (`physical_std`), over the identification records' velocity (reconstructed or measured;
+    neurons that take part of b (`viscous_share`) at ``pem.theta``, b's σ the sandwich's
+    (`physical_std` of ``pem.cov``: without a rejected polish's offset, which would hide a
+    shared slope behind the distance to the optimum), over the identification records' velocity (reconstructed or measured;
     from position differences where there is none, as `velocity_scale` reads it)."""
     theta = torch.as_tensor(pem.theta, dtype=torch.float64)
     values = dict(zip(model.theta_names, model.to_physical(theta).tolist(), strict=True))
