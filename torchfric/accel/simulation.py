@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ..models.arm import ArmModel
-from ..models.simulate import odeint_engine, register_engine, solver_step
+from ..models.simulate import odeint_engine, register_engine, sample_grid, solver_step
 from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, step_key, structure_key
 
 __all__ = ["rk4_chunk", "compiled_engine"]
@@ -86,23 +86,27 @@ _BLOCK = 50_000
 
 
 def _sampled_states(
-    model: ArmModel, theta: Tensor, x0: Tensor, u: Tensor, hs: Tensor, substeps: int
+    model: ArmModel, theta: Tensor, x0: Tensor, t: Tensor, u: Tensor, substeps: int
 ) -> Tensor:
     """The states at the sample times ``(n, [B,] state)`` from `x0`, `u` held per interval
-    ``(n − 1, [B])``, `substeps` solver steps ``hs`` per interval: `_rk4_states`' steps, run by
-    blocks of about `_BLOCK` solver steps that keep only each interval's last state (a copy:
-    a strided view would keep the whole block's sub-steps alive). A simulation needs no
-    gradient through the sub-steps, and keeping them cost ``substeps`` times the result: a
-    20-minute record's 9-member selection at 64 sub-steps grew by 0.46 GB a block of 50 k
-    intervals, to 1.9 GiB, when the views kept them. The same steps in the same order: the
-    same numbers to the last bit."""
+    ``(n − 1, [B])`` of `t`, `substeps` solver steps per interval on `sample_grid`'s grid:
+    `_rk4_states`' steps, run by blocks of about `_BLOCK` solver steps that keep only each
+    interval's last state (a copy: a strided view would keep the whole block's sub-steps
+    alive). Each block builds its own piece of the grid: the whole grid and its steps are two
+    arrays of ``(n − 1)·substeps`` (1.2 GB for a 20-minute record at 64 sub-steps). A
+    simulation needs no gradient through the sub-steps, and keeping them cost ``substeps``
+    times the result: a 20-minute record's 9-member selection at 64 sub-steps grew by 0.46 GB
+    a block of 50 k intervals, to 1.9 GiB, when the views kept them. The same steps in the
+    same order: the same numbers to the last bit (a block's grid is the whole grid's piece,
+    element for element)."""
     chunk = rk4_chunk(model)
     out, x = [x0.unsqueeze(0)], x0.clone()
     intervals = max(1, _BLOCK // substeps)
     for i in range(0, u.shape[0], intervals):
         j = min(i + intervals, u.shape[0])
         us = u[i:j].repeat_interleave(substeps, dim=0)
-        (x,), (states,) = run_chunks(chunk, (x,), (us, hs[i * substeps : j * substeps]), (theta,))
+        grid = sample_grid(t[i : j + 1], substeps)
+        (x,), (states,) = run_chunks(chunk, (x,), (us, grid[1:] - grid[:-1]), (theta,))
         out.append(states[substeps - 1 :: substeps].clone() if substeps > 1 else states)
     return torch.cat(out)
 
@@ -137,23 +141,29 @@ def compiled_engine(
     x0: Tensor,
     theta: Tensor,
     *,
-    grid: Tensor,
+    grid: Tensor | None,
     substeps: int,
     method: str,
 ) -> Tensor:
-    """The "compiled" engine (`torchfric.models.simulate.Engine`): rk4 on `grid` (`substeps`
-    solver steps per sample) through `rk4_chunk`, differentiable in θ and x0 (`_CompiledRK4`)
-    when either needs a gradient; another `method` goes through `odeint_engine`."""
+    """The "compiled" engine (`torchfric.models.simulate.Engine`): rk4 on `sample_grid`'s
+    grid (`substeps` solver steps per sample) through `rk4_chunk`, differentiable in θ and x0
+    (`_CompiledRK4`) when either needs a gradient; another `method` goes through
+    `odeint_engine`. It builds the grid itself (`builds_grid`): without a gradient, a block at
+    a time."""
+    n = t.numel()
+    if not (torch.is_grad_enabled() and (theta.requires_grad or x0.requires_grad)) and (
+        method == "rk4" or model.state_size != 2
+    ):
+        with torch.no_grad():
+            return _sampled_states(model, theta.detach(), x0.detach(), t, u[:-1], substeps)[:n]
+    grid = sample_grid(t, substeps) if grid is None else grid
     if method != "rk4" and model.state_size == 2:
         return odeint_engine(model, t, u, x0, theta, grid=grid, substeps=substeps, method=method)
-    n = (grid.numel() - 1) // substeps + 1
     hs = grid[1:] - grid[:-1]
-    if not (torch.is_grad_enabled() and (theta.requires_grad or x0.requires_grad)):
-        with torch.no_grad():
-            return _sampled_states(model, theta.detach(), x0.detach(), u[:-1], hs, substeps)[:n]
     us = u[:-1].repeat_interleave(substeps, dim=0)  # u_k held over its interval's sub-steps
     states = _CompiledRK4.apply(theta, x0, us, hs, model)
     return states[::substeps][:n]
 
 
+compiled_engine.builds_grid = True  # type: ignore[attr-defined]
 register_engine("compiled", compiled_engine)
