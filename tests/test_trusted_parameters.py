@@ -205,24 +205,36 @@ def test_an_unidentifiable_model_is_named_in_metrics_and_summary(records, tmp_pa
     assert "<h2>Identifiability</h2>" in report and named[0].split(" are ")[0] in report
 
 
-def test_a_rejected_polish_reports_sigma_that_include_its_distance(
-    records, tmp_path, monkeypatch
+@pytest.mark.parametrize("kept", ["filter", "polish"])
+def test_sigma_include_the_distance_between_the_runs_two_estimates(
+    kept, records, tmp_path, monkeypatch
 ) -> None:  # type: ignore[no-untyped-def]
-    """When the prediction-error optimum simulates worse and the kept θ stays, its covariance is
-    the sandwich's at it plus its offset from the optimum, ``cov + o oᵀ``: the reported
-    correlation is that of the sandwich alone, the offset is in metrics.json, and every σ is at
-    least its parameter's offset (here the rejection is forced: the polished θ is scored 0)."""
+    """A run has two estimates, the filter's kept pass and the prediction-error optimum; its
+    covariance is the sandwich's at the reported one plus the outer product of their offset,
+    ``cov + o oᵀ``. A rejected polish (forced: the polished θ scored 0) keeps the filter's θ
+    and reports ``offset_to_optimum``; a kept polish (forced: scored 100) reports
+    ``offset_to_filter``, the filter's θ minus the polished one. The correlation is the
+    sandwich's alone, and every σ² is at least its parameter's offset²."""
     import torchfric.app.run.confidence as confidence
 
-    scores = iter([0.0, 100.0])  # the polished θ first, then the kept one
+    scores = iter([0.0, 100.0] if kept == "filter" else [100.0, 0.0])  # polished θ first
     monkeypatch.setattr(confidence, "_score", lambda *args: next(scores))
-    cfg = _write(tmp_path / "rejected", records, 1.0, AXIS.c_m, False)
+    cfg = _write(tmp_path / kept, records, 1.0, AXIS.c_m, False)
     result = torchfric.fit(str(cfg), out=str(tmp_path / "run"), quiet=True)
     m = result.metrics
-    assert "polish_rejected" in m and "polished" not in m
-    offset = torch.tensor(m["covariance"]["offset_to_optimum"], dtype=torch.float64)
-    assert offset.abs().max() > 0
     state = torchfric.read_checkpoint(result.checkpoint)["estimator"]["state"]
+    theta = torch.as_tensor(state["theta"], dtype=torch.float64)
+    if kept == "filter":
+        assert "polish_rejected" in m and "polished" not in m
+        assert "offset_to_filter" not in m["covariance"]
+        offset = torch.tensor(m["covariance"]["offset_to_optimum"], dtype=torch.float64)
+    else:
+        assert "polished" in m and "polish_rejected" not in m
+        assert "offset_to_optimum" not in m["covariance"]
+        offset = torch.tensor(m["covariance"]["offset_to_filter"], dtype=torch.float64)
+        filter_theta = torch.as_tensor(state["filter_theta"], dtype=torch.float64)
+        torch.testing.assert_close(offset, filter_theta - theta, rtol=0, atol=0)
+    assert offset.abs().max() > 0
     P = torch.as_tensor(state["P_theta"], dtype=torch.float64)
     torch.testing.assert_close(P, P.T)
     assert bool((torch.diagonal(P) >= offset**2).all())
