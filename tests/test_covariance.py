@@ -612,3 +612,35 @@ def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # typ
         assert trace == sorted(trace) and len(trace) > 1  # every step taken raised ℓ
         assert bool((theta.abs() < 0.5 * bound).all())
         assert bool(torch.allclose(theta, best)) is reaches
+
+
+def test_the_noise_model_keeps_the_filters_velocity_from_the_model(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """`noise_model` tries only noise models whose process noise over one sample is at most
+    `NOISE_STEP_LIMIT` of the measurement's variance (``q·dt³ ≤ R/100``): a record whose
+    machine is shaken by a strong white torque that the record does not hold makes the likelihood prefer a filter that follows
+    the encoder sample by sample (above the limit: the assertion on the uncapped grid), and the
+    capped grid returns none of those, ranked best first."""
+    import torchfric.estimators.covariance as cov
+
+    model = _tanh_arm((40.0,), (0.3,))
+    n = 3000
+    g = torch.Generator().manual_seed(7)
+    t = torch.arange(n, dtype=torch.float64) * DT
+    u = torch.sin(2 * math.pi * 4.0 * t)
+    shaking = 3.0 * torch.randn(n, generator=g)  # a torque the record does not hold
+    with torch.no_grad():
+        x = simulate(model, t, u + shaking, torch.zeros(2), substeps=4)
+    exp = make_experiment(t, u, x[:, 0] + SIGMA_Q * torch.randn(n, generator=g), name="shaken")
+    tuning = _tuning()
+    theta = model.theta_vector().detach()
+
+    def step_ratio(q: float, r: float) -> float:
+        return q * tuning.q_state[1] * DT**3 / (r * tuning.r[0])
+
+    monkeypatch.setattr(cov, "NOISE_STEP_LIMIT", math.inf)
+    uncapped = cov.noise_model(model, [exp], tuning, theta)
+    assert step_ratio(*uncapped[0]) > 1e-2  # the likeliest: above the limit
+    monkeypatch.setattr(cov, "NOISE_STEP_LIMIT", 1e-2)
+    capped = cov.noise_model(model, [exp], tuning, theta)
+    assert capped and all(step_ratio(q, r) <= 1e-2 * (1 + 1e-9) for q, r in capped)
+    assert capped == [g for g in uncapped if step_ratio(*g) <= 1e-2 * (1 + 1e-9)]

@@ -222,6 +222,7 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
     cfg = _write(tmp_path / kept, records, 1.0, AXIS.c_m, False)
     result = torchfric.fit(str(cfg), out=str(tmp_path / "run"), quiet=True)
     m = result.metrics
+    assert 0 < m["covariance"]["noise_model"]["step_ratio"] <= 1e-2 * (1 + 1e-9)
     state = torchfric.read_checkpoint(result.checkpoint)["estimator"]["state"]
     theta = torch.as_tensor(state["theta"], dtype=torch.float64)
     if kept == "filter":

@@ -394,6 +394,14 @@ NOISE_GRID_R = tuple(10.0**p for p in range(-8, 1))
 times an encoder's quantisation variance)."""
 NOISE_GRID_Q = tuple(10.0**p for p in range(-3, 4))
 """Factors on the tuning's Q tried by `noise_model`."""
+NOISE_STEP_LIMIT = 1e-2
+"""The largest ``q·dt³ / R`` `noise_model` tries: one sample's process noise on q (q the
+intensity on q̇, dt the longest sample time) at most this share of the measurement's variance,
+so that the filter's velocity comes from the model between samples rather than from differencing
+the encoder. Above it the one-step prediction error sees the friction through the encoder's
+differenced noise; measured on an EMPS-like linear axis with a 1 µm encoder (20 seeds,
+docs/results.md), the likeliest noise models sat at 1 and M and b were 10–160 σ off on 7 of
+them."""
 
 
 def noise_model(
@@ -406,7 +414,8 @@ def noise_model(
     r_scale: float = 1.0,
 ) -> list[tuple[float, float]]:
     """The Q and R factors (on the tuning's, times `q_scale`, `r_scale`) under which the
-    fixed-θ filter's innovations are most likely: the grid `NOISE_GRID_Q` × `NOISE_GRID_R`,
+    fixed-θ filter's innovations are most likely: the grid `NOISE_GRID_Q` × `NOISE_GRID_R`
+    where one sample's process noise is at most `NOISE_STEP_LIMIT` of R (``q·dt³ ≤ R/100``),
     all filtered as one batch, ranked by the Gaussian log-likelihood (best first; the filters
     that failed left out).
 
@@ -416,7 +425,11 @@ def noise_model(
     the criterion is so far from quadratic that a Gauss–Newton step of a few σ lost 100 nats
     where it predicted a gain of 4. Under the likelihood's own noise levels the innovations are
     close to white and the criterion close to quadratic."""
-    grid = [(q, r) for q in NOISE_GRID_Q for r in NOISE_GRID_R]
+    dt = max(float(e.dt) for e in experiments)
+    q_v, r_q = float(tuning.q_state[1]) * q_scale, float(tuning.r[0]) * r_scale
+    whole = [(q, r) for q in NOISE_GRID_Q for r in NOISE_GRID_R]
+    grid = [(q, r) for q, r in whole if q * q_v * dt**3 <= NOISE_STEP_LIMIT * r * r_q * (1 + 1e-9)]
+    grid = grid or [min(whole, key=lambda g: g[0] / g[1])]  # the grid's smallest step
     best = (1.0, 1.0)
     theta = torch.as_tensor(theta, dtype=torch.float64).reshape(1, -1)
     rows = theta.expand(len(grid), -1)

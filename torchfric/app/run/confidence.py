@@ -7,7 +7,8 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
 (`_position_only`):
 
 1. the noise model: the likeliest Q and R factors over a grid (`noise_model`; of the three
-   likeliest, the first whose filter stays healthy);
+   likeliest, the first whose filter stays healthy), among those whose process noise over one
+   sample stays below a hundredth of R (``step_ratio``, `NOISE_STEP_LIMIT`);
 2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
    (`pem_refine`), kept only when it simulates the validation records (else the
    identification records) no worse than the kept θ by 0.1 point; otherwise θ stays;
@@ -127,9 +128,10 @@ def attach_covariance(
         )
     state["filter_P_theta"] = P_filter
     state["P_theta"] = pem.cov if offset is None else offset_covariance(pem.cov, offset)
+    q_v, r_q, dt = q_scale * tuning.q_state[1], r_scale * tuning.r[0], max(e.dt for e in train)
     extra["covariance"] = {**pem.to_dict(), "noise_model": {
         "q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
-        "measure": tuning.measure}}  # fmt: skip
+        "measure": tuning.measure, "step_ratio": q_v * dt**3 / r_q}}  # fmt: skip
     if offset is not None:
         where = "offset_to_filter" if "polished" in extra else "offset_to_optimum"
         extra["covariance"][where] = offset.tolist()
