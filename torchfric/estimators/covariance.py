@@ -7,7 +7,8 @@ axis its σ were 10–1000× narrower than the real error. What a run reports in
 measured channel:
 
 1. `noise_model`: the Q and R factors under which the fixed-θ filter's innovations are most
-   likely (a grid, one batch of the ensemble's compiled masked step).
+   likely (a grid, one batch of the ensemble's compiled masked step), up to one sample's
+   process noise on q of R/100 (`NOISE_STEP_LIMIT`).
 2. `innovations`: per sample the innovation ``e_t(θ)`` and its variance ``S_t(θ)`` (a batch of
    fixed-θ filters, four per SIMD vector; ``S_t`` from their NIS and log-likelihood outputs).
 3. `pem_covariance`: the criterion ``V(θ) = Σ_t e_t²/S_t``; sensitivities ``∂e_t/∂θ`` by central
@@ -63,20 +64,10 @@ from .sandwich import (  # noqa: F401 - _bartlett, _inverse: re-exported for the
 from .settings import EKFTuning
 
 __all__ = [
-    "FixedThetaLikelihood",
-    "fixed_theta_loglik",
-    "PEMCovariance",
-    "Identifiability",
-    "innovations",
-    "pem_covariance",
-    "pem_refine",
-    "noise_model",
-    "identifiability",
-    "CORRELATION_LIMIT",
-    "BLOCKS",
-    "long_run_covariance",
-    "CONDITION_LIMIT",
-]
+    "FixedThetaLikelihood", "fixed_theta_loglik", "PEMCovariance", "Identifiability",
+    "innovations", "pem_covariance", "pem_refine", "noise_model", "identifiability",
+    "CORRELATION_LIMIT", "BLOCKS", "long_run_covariance", "CONDITION_LIMIT",
+]  # fmt: skip
 
 
 @dataclass
@@ -395,13 +386,8 @@ times an encoder's quantisation variance)."""
 NOISE_GRID_Q = tuple(10.0**p for p in range(-3, 4))
 """Factors on the tuning's Q tried by `noise_model`."""
 NOISE_STEP_LIMIT = 1e-2
-"""The largest ``q·dt³ / R`` `noise_model` tries: one sample's process noise on q (q the
-intensity on q̇, dt the longest sample time) at most this share of the measurement's variance,
-so that the filter's velocity comes from the model between samples rather than from differencing
-the encoder. Above it the one-step prediction error sees the friction through the encoder's
-differenced noise; measured on an EMPS-like linear axis with a 1 µm encoder (20 seeds,
-docs/results.md), the likeliest noise models sat at 1 and M and b were 10–160 σ off on 7 of
-them."""
+"""The largest ``q·dt³/R`` `noise_model` tries (q on q̇, dt the longest sample time): above it
+the filter follows the encoder sample by sample and sees the friction through its noise."""
 
 
 def noise_model(
@@ -414,23 +400,20 @@ def noise_model(
     r_scale: float = 1.0,
 ) -> list[tuple[float, float]]:
     """The Q and R factors (on the tuning's, times `q_scale`, `r_scale`) under which the
-    fixed-θ filter's innovations are most likely: the grid `NOISE_GRID_Q` × `NOISE_GRID_R`
-    where one sample's process noise is at most `NOISE_STEP_LIMIT` of R (``q·dt³ ≤ R/100``),
-    all filtered as one batch, ranked by the Gaussian log-likelihood (best first; the filters
-    that failed left out).
+    fixed-θ filter's innovations are most likely: the grid `NOISE_GRID_Q` × `NOISE_GRID_R` up
+    to ``q·dt³ = NOISE_STEP_LIMIT · R`` (at ``q·dt³ = R``, the likeliest on an EMPS-like axis
+    with a 1 µm encoder, M and b were 10–160 σ off on 7 of 20 seeds, docs/results.md), filtered
+    as one batch, ranked by the Gaussian log-likelihood (best first; failed filters left out).
 
-    The prediction-error criterion and its covariance are taken under this noise model: with
-    the identification tuning's R (the paper's 1e-3 rad² against an encoder's ~1e-7) the filter
-    barely uses the measurements, its one-step prediction is a long open-loop simulation, and
-    the criterion is so far from quadratic that a Gauss–Newton step of a few σ lost 100 nats
-    where it predicted a gain of 4. Under the likelihood's own noise levels the innovations are
-    close to white and the criterion close to quadratic."""
-    dt = max(float(e.dt) for e in experiments)
-    q_v, r_q = float(tuning.q_state[1]) * q_scale, float(tuning.r[0]) * r_scale
+    The criterion and its covariance are taken under this noise model: under the tuning's R
+    (the paper's 1e-3 rad², an encoder's ~1e-7) the one-step prediction is a long open-loop
+    simulation and a Gauss–Newton step of a few σ lost 100 nats where it predicted a gain of 4;
+    under the likelihood's own noise levels the innovations are close to white."""
+    dt = max(e.dt for e in experiments)
+    q_v, r_q = tuning.q_state[1] * q_scale, tuning.r[0] * r_scale
     whole = [(q, r) for q in NOISE_GRID_Q for r in NOISE_GRID_R]
     grid = [(q, r) for q, r in whole if q * q_v * dt**3 <= NOISE_STEP_LIMIT * r * r_q * (1 + 1e-9)]
-    grid = grid or [min(whole, key=lambda g: g[0] / g[1])]  # the grid's smallest step
-    best = (1.0, 1.0)
+    grid, best = grid or [min(whole, key=lambda g: g[0] / g[1])], (1.0, 1.0)
     theta = torch.as_tensor(theta, dtype=torch.float64).reshape(1, -1)
     rows = theta.expand(len(grid), -1)
     out = _batched_loglik(
@@ -473,14 +456,12 @@ def pem_refine(
     Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (the pseudo-inverse of `_inverse`:
     directions the data do not determine are not moved), whole or halved up to four times,
     whichever first raises ℓ (the five filtered as one batch); when none does,
-    Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`). The fallback was measured:
-    on a Coulomb axis the full and halved steps failed on 6 of 20 seeds, all 6 left with M
-    3.3–6 σ off (the pseudo-inverse step leans on the curve's poorly determined directions,
-    where ℓ is far from quadratic), while the seeds whose steps were taken ended within 2 σ.
+    Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`;
+    without them 6 of 20 seeds of a Coulomb axis took no step and kept M 3.3–6 σ off).
     It stops when the step's expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ`` falls below `min_gain` nats,
     when no trial raises ℓ, or after `iterations`. No trial puts any |θ| at half the filter's
-    box (``tuning.theta_bound``: a run reports that "at a bound"): along a direction the data
-    barely see, ℓ keeps rising by rounding-sized amounts (the rig's LuGre config walked there).
+    box (``tuning.theta_bound``): along a direction the data barely see, ℓ keeps rising by
+    rounding-sized amounts (the rig's LuGre config walked there).
 
     `start`: the covariance at `theta` when the caller has it already (not computed again).
 

@@ -114,10 +114,8 @@ def attach_covariance(
         say("  prediction-error polish simulated worse and was not kept")
         pem, offset = at_kept, polished - theta
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
-        # Its σ include its distance from the filter's kept pass (`offset_covariance`): the two
-        # estimate one θ from one record, so under a model that holds the machine they differ
-        # by about σ, and where the class cannot draw the machine (a Stribeck dip a tanh(3)
-        # curve does not hold, a coloured disturbance) each lands on its own compromise.
+        # Its σ include its distance from the filter's kept pass (`offset_covariance`): about
+        # σ where the class holds the machine, the size of its bias where it does not.
         final.set_theta(polished)
         state["filter_theta"], state["theta"] = theta, polished.clone()
         offset = theta - polished
@@ -128,10 +126,8 @@ def attach_covariance(
         )
     state["filter_P_theta"] = P_filter
     state["P_theta"] = pem.cov if offset is None else offset_covariance(pem.cov, offset)
-    q_v, r_q, dt = q_scale * tuning.q_state[1], r_scale * tuning.r[0], max(e.dt for e in train)
-    extra["covariance"] = {**pem.to_dict(), "noise_model": {
-        "q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
-        "measure": tuning.measure, "step_ratio": q_v * dt**3 / r_q}}  # fmt: skip
+    noise = _noise_dict(tuning, q_scale, r_scale, train)
+    extra["covariance"] = {**pem.to_dict(), "noise_model": noise}
     if offset is not None:
         where = "offset_to_filter" if "polished" in extra else "offset_to_optimum"
         extra["covariance"][where] = offset.tolist()
@@ -142,6 +138,15 @@ def attach_covariance(
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth})"
         + ("" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)")
     )
+
+
+def _noise_dict(tuning: Any, q_scale: float, r_scale: float, train: list[Experiment]) -> dict:
+    """metrics.json's ``covariance.noise_model``: Q and R in absolute units, what q measures,
+    and one sample's process noise on q over R (``step_ratio``, `NOISE_STEP_LIMIT` at most)."""
+    dt = max(e.dt for e in train)
+    return {"q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
+            "measure": tuning.measure,
+            "step_ratio": q_scale * tuning.q_state[1] * dt**3 / (r_scale * tuning.r[0])}  # fmt: skip
 
 
 def offset_covariance(cov: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
