@@ -65,7 +65,7 @@ from .settings import EKFTuning
 
 __all__ = [
     "FixedThetaLikelihood", "fixed_theta_loglik", "PEMCovariance", "Identifiability",
-    "innovations", "pem_covariance", "pem_refine", "noise_model", "identifiability",
+    "innovations", "pem_covariance", "pem_refine", "noise_model", "step_ratio", "identifiability",
     "CORRELATION_LIMIT", "BLOCKS", "long_run_covariance", "CONDITION_LIMIT",
 ]  # fmt: skip
 
@@ -390,6 +390,12 @@ NOISE_STEP_LIMIT = 1e-2
 the filter follows the encoder sample by sample and sees the friction through its noise."""
 
 
+def step_ratio(tuning: EKFTuning, experiments: Sequence[Experiment], q_scale: float, r_scale: float) -> float:  # fmt: skip
+    """One sample's process noise on q over R, ``q·dt³/R`` (q on q̇, dt the longest sample time)."""
+    dt = max(e.dt for e in experiments)
+    return q_scale * tuning.q_state[1] * dt**3 / (r_scale * tuning.r[0])
+
+
 def noise_model(
     model: ArmModel,
     experiments: Sequence[Experiment],
@@ -409,10 +415,9 @@ def noise_model(
     (the paper's 1e-3 rad², an encoder's ~1e-7) the one-step prediction is a long open-loop
     simulation and a Gauss–Newton step of a few σ lost 100 nats where it predicted a gain of 4;
     under the likelihood's own noise levels the innovations are close to white."""
-    dt = max(e.dt for e in experiments)
-    q_v, r_q = tuning.q_state[1] * q_scale, tuning.r[0] * r_scale
+    ratio = step_ratio(tuning, experiments, q_scale, r_scale)  # of the tuning's own Q and R
     whole = [(q, r) for q in NOISE_GRID_Q for r in NOISE_GRID_R]
-    grid = [(q, r) for q, r in whole if q * q_v * dt**3 <= NOISE_STEP_LIMIT * r * r_q * (1 + 1e-9)]
+    grid = [(q, r) for q, r in whole if q / r * ratio <= NOISE_STEP_LIMIT * (1 + 1e-9)]
     grid, best = grid or [min(whole, key=lambda g: g[0] / g[1])], (1.0, 1.0)
     theta = torch.as_tensor(theta, dtype=torch.float64).reshape(1, -1)
     rows = theta.expand(len(grid), -1)

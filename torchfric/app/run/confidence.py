@@ -41,7 +41,7 @@ import torch
 
 from ...data import Experiment
 from ...errors import TorchfricError
-from ...estimators.covariance import noise_model, pem_covariance, pem_refine
+from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
@@ -143,10 +143,8 @@ def attach_covariance(
 def _noise_dict(tuning: Any, q_scale: float, r_scale: float, train: list[Experiment]) -> dict:
     """metrics.json's ``covariance.noise_model``: Q and R in absolute units, what q measures,
     and one sample's process noise on q over R (``step_ratio``, `NOISE_STEP_LIMIT` at most)."""
-    dt = max(e.dt for e in train)
     return {"q_state": [q_scale * x for x in tuning.q_state], "r": [r_scale * x for x in tuning.r],
-            "measure": tuning.measure,
-            "step_ratio": q_scale * tuning.q_state[1] * dt**3 / (r_scale * tuning.r[0])}  # fmt: skip
+            "measure": tuning.measure, "step_ratio": step_ratio(tuning, train, q_scale, r_scale)}  # fmt: skip
 
 
 def offset_covariance(cov: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
