@@ -170,7 +170,7 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
         "estimator.method": set(ESTIMATORS),
         "estimator.measure": set(MEASUREMENTS),
         "model.init": set(INIT_KEYWORDS),
-        "model.dynamic": set(DYNAMICS),
+        "model.dynamic": {*DYNAMICS, "auto"},
         "estimator.units": set(TUNING_UNITS),
     }
     for key, choices in expected.items():

@@ -1,10 +1,13 @@
-"""Choosing an ensemble's member by the FIT of its open-loop simulations.
+"""Choosing by open-loop simulation: an ensemble's member, and the windows that score a class.
 
-Every member that has a pass to show is simulated open loop (all members as one batch) on the
+`select_by_fit`: every member that has a pass to show is simulated open loop (all members as one batch) on the
 validation experiments and on the training experiments; its score is the mean FIT of q and q̇ on
 the validation files and the mean FIT on the training files, weighted equally (the training
 files alone when there is no validation). Only when no member simulates does the innovation
 log-likelihood decide.
+
+`window_errors`: short open-loop predictions started from a fixed-θ filter's estimates, the
+score `torchfric.estimators.sizing.compare_dynamics` chooses static or LuGre friction by.
 """
 
 from __future__ import annotations
@@ -19,9 +22,16 @@ from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import auto_substeps, simulate
+from .ekf import EKFState, make_propagator, make_step, run_pass
 from .metrics import fit_percent_batch
+from .passes import initial_belief, measurements
+from .settings import EKFTuning
 
-__all__ = ["simulate_members", "select_by_fit"]
+__all__ = [
+    "simulate_members",
+    "select_by_fit",
+    "window_errors",
+]
 
 
 @torch.no_grad()
@@ -126,3 +136,58 @@ def select_by_fit(
             scores[i] = loglik[i]
         selected_by = "loglik"
     return scores, fits, selected_by
+
+
+@torch.no_grad()
+def window_errors(
+    model: ArmModel,
+    theta: Tensor,
+    exp: Experiment,
+    tuning: EKFTuning,
+    start: int,
+    window: int,
+    *,
+    q_scale: float = 1.0,
+    r_scale: float = 1.0,
+) -> Tensor:
+    """`(W,)` mean squared position errors of open-loop simulations over the windows of `window`
+    samples that tile `exp` from sample `start` on, each started from the filter's estimate.
+
+    The filter (`tuning` resolved, its Q and R times `q_scale` and `r_scale`) runs over the
+    whole record with θ held fixed at `theta` (no process noise on θ, ``P_θθ = 0``); at each
+    window's first sample a its filtered state ``x̂(a|a)`` (q, q̇ and a dynamic model's bristle
+    deflection z, from the measurements up to a only) starts a simulation of the next `window`
+    samples under the recorded input, scored against the measured q of samples a+1 … a+window.
+    The score is a k-step-ahead prediction error: causal, and free of the slow drift that
+    makes a whole-record simulation of a position-loop record meaningless after seconds.
+    """
+    f64 = torch.float64
+    k = model.num_parameters
+    s = model.state_size
+    Q, P0_xx, H, R = tuning.matrices(k, s)
+    Q = Q * q_scale
+    Q[s:, s:] = 0.0
+    R = R * r_scale
+    step_fn = make_step(make_propagator(model, tuning.substeps), compile=tuning.compile)
+    u = exp.u.to(f64)
+    y = measurements(exp, tuning.measure)
+    dt = torch.tensor(exp.dt, dtype=f64)
+    x, P = initial_belief(exp, theta[None].to(f64), torch.zeros(1, k, k, dtype=f64), P0_xx)
+    state, _ = run_pass(EKFState(x[0], P[0]), u[: start + 1], y[: start + 1], dt, Q, H, R,
+                        step_fn, theta_bound=tuning.theta_bound)  # fmt: skip
+    firsts = list(range(start, exp.n - window, window))
+    if not firsts:
+        raise TorchfricError(
+            f"experiment {exp.name!r}: no window of {window} samples after sample {start}"
+        )
+    x0 = []
+    for a in firsts:
+        if a > start:
+            state, _ = run_pass(state, u[a - window : a + 1], y[a - window : a + 1], dt, Q, H, R,
+                                step_fn, theta_bound=tuning.theta_bound, continuing=True)  # fmt: skip
+        x0.append(state.x[:s])
+    idx = torch.tensor(firsts)[None, :] + torch.arange(window + 1)[:, None]  # (window+1, W)
+    t = exp.t.to(f64)[: window + 1] - exp.t[0]
+    sim = simulate(model, t, u[idx], torch.stack(x0), theta=theta.to(f64), engine="compiled")
+    err = sim[1:, :, 0] - exp.q.to(f64)[idx[1:]]
+    return (err * err).mean(dim=0)

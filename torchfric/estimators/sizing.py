@@ -28,6 +28,17 @@ prediction (θ's dynamics are the identity) and the update (their gain rows are 
 Every tanh size's members are therefore members of one tanh(n) ensemble, filtered in one
 batch, with the results of the sizes run alone (same arithmetic, same pass rules). Other kinds
 (polytopic local models come with their own centres and widths) run one size after another.
+
+The friction class (``model.dynamic = "auto"``) is chosen here as well, by `compare_dynamics`,
+and not by BIC: on a static Stribeck axis the one-step likelihood of the LuGre filter beats the
+static filter's by more than its ln N penalty (the bristle state's extra freedom, not a better
+model), so each class is identified on the first 70 % of the records (by `compare_sizes`, the
+same ensemble and passes) and scored by how well it predicts the held-out rest in 0.05-s
+open-loop windows from its own filter (`torchfric.estimators.selection.window_errors`).
+
+Why this size: one concept, the model's structure from the identification data, and one
+machinery for it (every candidate identified by the same batched ensemble, `compare_sizes`,
+then scored); the windows themselves live with the other open-loop scores in `selection`.
 """
 
 from __future__ import annotations
@@ -55,10 +66,15 @@ from .passes import (
     prepared,
     run_passes,
 )
+from .selection import window_errors
 from .settings import EKFTuning, EnsembleSpec
 
 __all__ = [
     "CRITERION",
+    "DYNAMICS_CRITERION",
+    "DynamicsResult",
+    "compare_dynamics",
+    "held_out_heads",
     "SizeScore",
     "SizingResult",
     "compare_sizes",
@@ -99,6 +115,9 @@ class SizingResult:
     samples: int  # N of the penalty k ln N
     batched: bool  # the sizes ran as one batch (nested tanh sizes)
     seconds: float
+    thetas: dict[int, Tensor] = dataclasses.field(default_factory=dict, repr=False)
+    """Each size's identified θ (its best member's kept θ, in that size's own coordinates; not
+    in `to_dict`): the start of whatever scores the sizes next."""
 
     def to_dict(self) -> dict[str, Any]:
         """For metrics.json: the criterion, the choice and the table of sizes."""
@@ -172,12 +191,20 @@ def compare_sizes(
     groups = [(largest, sizes)] if batched else [(starts[s], [s]) for s in sizes]
     samples = sum(e.n for e in exps)
     scores: list[SizeScore] = []
+    thetas: dict[int, Tensor] = {}
     for model, group in groups:
         members = _members(model, {s: starts[s] for s in group}, tuning, spec)
         f = _filtering(model, exps, tuning, members, callback, progress_every, device)
         ledger = _train(model, tuning, members, f)
         ll = _fixed_loglik(model, tuning, ledger, f)
         scores += [_score(s, starts[s], members, ledger, ll, samples) for s in group]
+        kept = ledger.kept_theta()
+        for s in group:
+            best = max(
+                (i for i, o in enumerate(members.owner) if o == s), key=lambda i: float(ll[i])
+            )
+            names = model.theta_names
+            thetas[s] = kept[best, [names.index(n) for n in starts[s].theta_names]].clone()
     best = min(scores, key=lambda s: (s.bic, s.size))
     if not math.isfinite(best.bic):
         raise TorchfricError(
@@ -185,7 +212,8 @@ def compare_sizes(
             "model.init = 'prefit', lower estimator.p0_theta, or give model.sizes smaller sizes"
         )
     best.chosen = True
-    return SizingResult(scores, best.size, samples, batched, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    return SizingResult(scores, best.size, samples, batched, seconds, thetas)
 
 
 @dataclass
@@ -305,3 +333,154 @@ def _score(
         members=len(rows),
         diverged=sum(ledger.status[i] == DIVERGED for i in rows),
     )
+
+
+DYNAMICS_CRITERION = "windowed_prediction"
+"""The name metrics and reports give `compare_dynamics`' criterion."""
+HOLDOUT = 0.3  # the share of each identification record held out (its end)
+WINDOW_SECONDS = 0.05  # the windows' length (0.02, 0.05, 0.1 s measured: docs/results.md)
+MIN_WINDOW = 10  # samples, whatever the sample time
+T_MIN = 2.0  # standard errors by which the dynamic model's windows must beat the static's
+
+
+@dataclass
+class DynamicsResult:
+    """What `compare_dynamics` returns: per model class (``"none"``, ``"lugre"``) its `SizeScore`
+    on the head (`size` unused), its windows' RMS position error on the held-out end (``rmse``),
+    the paired statistic and the choice."""
+
+    scores: dict[str, SizeScore]
+    rmse: dict[str, float]
+    gain: float  # 1 − MSE(dynamic) / MSE(static) over the held-out windows
+    t: float  # the mean per-window MSE difference over its standard error
+    chosen: str
+    windows: int
+    window_seconds: float
+    holdout: float
+    seconds: float
+    thetas: dict[str, Tensor] = dataclasses.field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """For metrics.json (``dynamic``): the criterion, the choice and the two classes."""
+        table = [
+            {"dynamic": d, **{k: v for k, v in s.to_dict().items() if k != "size"},
+             "rmse_q": self.rmse[d], "chosen": d == self.chosen}
+            for d, s in self.scores.items()
+        ]  # fmt: skip
+        return {
+            "criterion": DYNAMICS_CRITERION,
+            "chosen": self.chosen,
+            "gain": self.gain,
+            "t": self.t,
+            "t_min": T_MIN,
+            "windows": self.windows,
+            "window_seconds": self.window_seconds,
+            "holdout": self.holdout,
+            "seconds": self.seconds,
+            "table": table,
+        }
+
+
+def held_out_heads(experiments: Sequence[Experiment], holdout: float = HOLDOUT) -> list[Experiment]:
+    """The part of each record `compare_dynamics` identifies on: all but its last `holdout`
+    share (the starting models it compares must come from these heads alone)."""
+    return [e.slice(0, e.n - round(holdout * e.n)) for e in experiments]
+
+
+def compare_dynamics(
+    static: ArmModel,
+    dynamic: ArmModel,
+    experiments: Experiment | Sequence[Experiment],
+    tuning: EKFTuning | None = None,
+    spec: EnsembleSpec | None = None,
+    *,
+    holdout: float = HOLDOUT,
+    window_seconds: float = WINDOW_SECONDS,
+    device: torch.device | None = None,
+) -> DynamicsResult:
+    """Static or dynamic friction, from the identification records alone.
+
+    Both models are identified (`compare_sizes`: the same ensemble and pass rules) on the first
+    ``1 − holdout`` of every record (`held_out_heads`; `static` and `dynamic` are their starts,
+    made from those heads alone); the rest is held out. There each model's filter, θ fixed,
+    starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
+    mean squared position errors are compared pair by pair. The dynamic model is kept only when
+    its windows predict better by more than `T_MIN` standard errors of the mean difference;
+    otherwise the static model, the simpler one, is. A LuGre model whose bristles are stiff
+    (σ0 → ∞) simulates as its static curve does: its windows tie with the static model's, and
+    the tie keeps the static model.
+
+    Raises:
+        TorchfricError: no record is long enough to hold a window out, or the static model's
+            filters all diverge.
+    """
+    t0 = time.perf_counter()
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    tuning = tuning or EKFTuning()
+    cuts = [e.n - round(holdout * e.n) for e in exps]
+    lengths = [max(MIN_WINDOW, round(window_seconds / e.dt)) for e in exps]
+    scored = [i for i, e in enumerate(exps) if e.n - cuts[i] > lengths[i]]
+    if not scored:
+        raise TorchfricError(
+            'model.dynamic = "auto" holds out the last '
+            f"{holdout:.0%} of each identification record and needs at least one "
+            f"{max(lengths) + 1}-sample window there; give longer records, or set "
+            'model.dynamic = "none" or "lugre"'
+        )
+    heads = held_out_heads(exps, holdout)
+    picks = [(exps[i], cuts[i], lengths[i]) for i in scored]
+    scores, thetas, mse = _identify_and_predict(
+        {"none": static, dynamic.dynamic: dynamic}, heads, picks, tuning, spec, device
+    )
+    (a_key, a), (b_key, b) = mse.items()
+    if not bool(torch.isfinite(a).all()):
+        raise TorchfricError(
+            "every filter of the static model diverged on the identification "
+            "records; start from model.init = 'prefit' or lower estimator.p0_theta"
+        )
+    d = a - b if bool(torch.isfinite(b).all()) else torch.full_like(a, -math.inf)
+    n = d.numel()
+    se = float(d.std() / math.sqrt(n)) if n > 1 and bool(torch.isfinite(d).all()) else math.nan
+    t = float(d.mean()) / se if se > 0 else (math.inf if float(d.mean()) > 0 else -math.inf)
+    gain = 1.0 - float(b.mean() / a.mean())
+    chosen = b_key if t > T_MIN else a_key
+    rmse = {k: float(v.mean().sqrt()) for k, v in mse.items()}
+    return DynamicsResult(scores, rmse, gain, t, chosen, n, window_seconds, holdout,
+                          time.perf_counter() - t0, thetas)  # fmt: skip
+
+
+def _identify_and_predict(
+    starts: Mapping[str, ArmModel],
+    heads: list[Experiment],
+    picks: list[tuple[Experiment, int, int]],
+    tuning: EKFTuning,
+    spec: EnsembleSpec | None,
+    device: torch.device | None,
+) -> tuple[dict[str, SizeScore], dict[str, Tensor], dict[str, Tensor]]:
+    """Each class's `SizeScore` and θ identified on `heads`, and its windows' mean squared
+    errors on the records `picks` = [(record, first held-out sample, window)] (inf for a class
+    whose filters all diverged)."""
+    scores, thetas, mse = {}, {}, {}
+    for key, start in starts.items():
+        r = compare_sizes({1: start}, heads, tuning, spec, device=device)
+        score, theta = r.scores[0], r.thetas[1]
+        scores[key], thetas[key] = score, theta
+        if not math.isfinite(score.bic):
+            mse[key] = torch.full((1,), math.inf, dtype=torch.float64)
+            continue
+        resolved = prepared(heads, tuning, start.num_parameters, "compare_dynamics")[1]
+        errs = [
+            window_errors(
+                start,
+                theta,
+                exp,
+                resolved,
+                cut,
+                window,
+                q_scale=score.q_scale,
+                r_scale=score.r_scale,
+            )  # fmt: skip
+            for exp, cut, window in picks
+        ]
+        mse[key] = torch.nan_to_num(torch.cat(errs), nan=math.inf)
+    return scores, thetas, mse

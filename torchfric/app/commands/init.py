@@ -196,7 +196,7 @@ class _Plan:
 
     def text(self) -> str:
         exp, out = self.exp, self.out.name
-        model, est = ModelConfig(c_m=self.c_m), EstimatorConfig()
+        model, est = ModelConfig(c_m=self.c_m, dynamic="auto"), EstimatorConfig()
         head = [
             f"# Starter config for {self.data.name}, by `torchfric init` (torchfric {__version__})",
             f"#   torchfric check {out}    what a run would do (checks all, writes nothing)",
@@ -213,7 +213,7 @@ class _Plan:
             "",
             "[model]",
         ]
-        for key in ("friction", "size", "c_m", "init", "inertia", "viscous"):
+        for key in ("friction", "size", "dynamic", "c_m", "init", "inertia", "viscous"):
             head += _block(key, getattr(model, key), _HELP.get(key, ""))
         head += _comment(_TERMS_HELP)
         for key, example, why in _TERMS:
@@ -235,10 +235,6 @@ _TERMS = (
      "rad or deg, 0 hanging straight down); for an arm that swings back when let go."),
     ("asymmetric", 0.0, "a·|q̇|, viscous slope b + a forwards and b − a backwards; "
      "try it when the machine runs faster one way than the other under the same input."),
-    ("dynamic", "lugre", "LuGre bristle dynamics around the learned curve (stick, pre-sliding, "
-     "hysteresis); try it when a small reversal moves a few encoder counts and comes back, or "
-     "when static models cannot lift the validation FIT. Set model.sigma0 so that the "
-     "pre-sliding range (static friction / sigma0) is a few encoder counts."),
 )  # fmt: skip
 """[model] keys written commented out: (key, example value, when to turn it on)."""
 _FOUND = (
@@ -252,6 +248,10 @@ _NONE = (
     "this config)."
 )
 _HELP = {
+    "dynamic": '"auto": static friction and LuGre bristle dynamics (stick, pre-sliding, '
+    "hysteresis) are both identified on the first 70 % of the records; LuGre is kept only if it "
+    'predicts the held-out rest better (the summary shows both). "none" or "lugre" fixes the '
+    "class and skips the comparison (a run about twice as fast).",
     "train": "Identification records (paths relative to this file); every pass uses all of them.",
     "validation": "Held-out records: open-loop FIT after every pass, which picks the pass kept.",
     "test": "Held-out records scored once, at the end; they pick nothing.",

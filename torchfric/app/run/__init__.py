@@ -5,7 +5,8 @@
 - `runner`: `train` (data → initial model → estimator with observers → checkpoint);
 - `inputs`: the config's data → experiments, resource checks, the initial model, the
   estimate of a run's time and memory;
-- `autosize`: ``model.size = "auto"``, sizes tried before the run proper;
+- `autosize`: ``model.size = "auto"``, sizes tried before the run proper; `autosize`:
+  ``model.dynamic = "auto"``, static or LuGre friction chosen before it the same way;
 - `confidence`: the kept θ's covariance (prediction-error sandwich) and identifiability;
 - `assessment`: scores and warnings of a finished model;
 - `outcome`: the kept pass, the parameter table and the summary lines;
@@ -31,6 +32,7 @@ _LAZY: dict[str, str] = {
         "inputs",
     ),
     **dict.fromkeys(["candidate_sizes", "choose_size", "sized"], "autosize"),
+    **dict.fromkeys(["choose_dynamic", "with_dynamic"], "autosize"),
     **dict.fromkeys(
         ["keep_best", "parameter_lines", "parameter_table", "summary_lines"], "outcome"
     ),

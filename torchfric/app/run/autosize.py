@@ -1,4 +1,7 @@
-"""``model.size = "auto"``: the run's friction size, chosen from its identification data.
+"""``model.size = "auto"`` and ``model.dynamic = "auto"``: the run's friction size and class,
+chosen from its identification data.
+
+Size:
 
 `choose_size` runs before the run proper (`torchfric.app.run.runner`, ``_Run.prepare``; it writes
 nothing): it builds the starting model of every candidate size (``model.sizes``, by default
@@ -11,6 +14,22 @@ and the summary (`size_lines`).
 The run's own ``config.toml`` keeps ``size = "auto"`` (what was asked; ``--resume`` compares
 it); the checkpoint's model has the chosen size. A resumed run chooses again, the same way (the
 same size and table), before it continues from its snapshot.
+
+Class (after the size, which is chosen for the static model):
+
+`choose_dynamic` runs before the run proper (`torchfric.app.run.runner`, ``_Run.prepare``, after
+``model.size = "auto"``, which sizes the static model; it writes nothing). It builds the static
+and the LuGre model of the config the way a run builds its start (`config_model`,
+`initial_model`), from the first 70 % of every identification record only, and hands them to
+`torchfric.estimators.sizing.compare_dynamics`: both are identified there with the run's
+tuning and ensemble, and each predicts the held-out last 30 % in open-loop windows of 0.05 s
+started from its own filter. LuGre is kept only when its windows predict the position better
+by more than two standard errors; a tie keeps the static model. The run then trains the chosen
+class on the whole records like any other run. The comparison goes into ``metrics.json`` (key
+``dynamics``), ``report.html`` and the summary (`dynamic_lines`).
+
+The run's own ``config.toml`` keeps ``dynamic = "auto"``; the checkpoint's model has the chosen
+class. A resumed run chooses again, the same way, before it continues from its snapshot.
 """
 
 from __future__ import annotations
@@ -20,12 +39,28 @@ import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from ...estimators.sizing import compare_sizes, nests
+from ...estimators.sizing import (
+    HOLDOUT,
+    WINDOW_SECONDS,
+    compare_dynamics,
+    compare_sizes,
+    held_out_heads,
+    nests,
+)
 from ...resources import ekf_bytes, require_memory
 from ..config import AUTO_SIZES, Config
 from .inputs import check_resources, config_model, initial_model
 
-__all__ = ["choose_size", "choose_size_and_start", "candidate_sizes", "size_lines", "sized"]
+__all__ = [
+    "choose_dynamic",
+    "choose_size",
+    "choose_size_and_start",
+    "candidate_sizes",
+    "dynamic_lines",
+    "size_lines",
+    "sized",
+    "with_dynamic",
+]
 
 
 def candidate_sizes(cfg: Config) -> tuple[int, ...]:
@@ -110,4 +145,75 @@ def size_lines(sizes: Mapping[str, Any]) -> list[str]:
         bic_text = f"{bic:14.1f}" if math.isfinite(bic) else f"{'–':>14}"
         mark = "  ← chosen" if row["chosen"] else ""
         lines.append(f"  {row['size']:>4}  {row['parameters']:>3}  {ll_text}  {bic_text}{mark}")
+    return lines
+
+
+NAMES = {"none": "static", "lugre": "LuGre"}
+
+
+def with_dynamic(cfg: Config, dynamic: str) -> Config:
+    """`cfg` with ``model.dynamic = dynamic``."""
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, dynamic=dynamic))
+
+
+def choose_dynamic(
+    cfg: Config,
+    train: list[Any],
+    say: Callable[[str], None] | None = None,
+    *,
+    device: Any = None,
+) -> tuple[Config, dict[str, Any] | None]:
+    """`cfg` with its friction class chosen from the identification records `train`, and the
+    comparison (`DynamicsResult.to_dict`); `cfg` itself and None unless ``model.dynamic`` is
+    "auto". `device`: a CUDA `torch.device` filters the ensembles there (None: the CPU)."""
+    if cfg.model.dynamic != "auto":
+        return cfg, None
+    say = say or (lambda _: None)
+    heads = held_out_heads(train, HOLDOUT)
+    starts = {}
+    for dynamic in ("none", "lugre"):
+        one = with_dynamic(cfg, dynamic)
+        base = config_model(one, heads)
+        check_resources(one, heads, base)
+        starts[dynamic] = initial_model(one, heads, base)[0]
+    est = cfg.estimator
+    spec = est.ensemble_spec(cfg.seed) if est.ensemble > 0 else None
+    say(
+        f'  model.dynamic = "auto": static and LuGre friction identified on the first '
+        f"{1 - HOLDOUT:.0%} of each record, each predicting the last {HOLDOUT:.0%} in "
+        f"{WINDOW_SECONDS:g}-s open-loop windows; LuGre is kept if it predicts better by > 2 σ"
+    )
+    result = compare_dynamics(
+        starts["none"], starts["lugre"], train, est.ekf_tuning(), spec, device=device
+    ).to_dict()
+    for line in dynamic_lines(result):
+        say("  " + line)
+    return with_dynamic(cfg, result["chosen"]), result
+
+
+def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
+    """The comparison of friction classes (metrics' ``dynamics``) as text lines: the summary's
+    and the progress output's."""
+    chosen = NAMES.get(dynamics["chosen"], dynamics["chosen"])
+    lines = [
+        f"friction class {chosen} chosen by open-loop prediction of held-out data: "
+        f"{dynamics['windows']} windows of {dynamics['window_seconds']:g} s in the last "
+        f"{dynamics['holdout']:.0%} of the records ({dynamics['seconds']:.1f} s):",
+        f"  {'class':<7} {'k':>3}  {'RMS q error':>12}  {'BIC (for reference)':>20}",
+    ]
+    for row in dynamics["table"]:
+        rmse, bic = row["rmse_q"], row["bic"]
+        rmse_text = f"{rmse:12.4g}" if math.isfinite(rmse) else f"{'diverged':>12}"
+        bic_text = f"{bic:20.1f}" if math.isfinite(bic) else f"{'–':>20}"
+        mark = "  ← chosen" if row["chosen"] else ""
+        name = NAMES.get(row["dynamic"], row["dynamic"])
+        lines.append(f"  {name:<7} {row['parameters']:>3}  {rmse_text}  {bic_text}{mark}")
+    t = dynamics["t"]
+    t_text = f"{t:.1f}" if math.isfinite(t) else ("+∞" if t > 0 else "−∞")
+    gain = dynamics["gain"]
+    how = f"{abs(gain):.1%} {'lower' if gain >= 0 else 'higher'}" if math.isfinite(gain) else "–"
+    lines.append(
+        f"  LuGre's windows: mean squared error {how} than static's, {t_text} standard errors "
+        f"of the difference (LuGre is kept above {dynamics['t_min']:g})"
+    )
     return lines

@@ -27,7 +27,7 @@ from ...estimators.passes import EKFResult, PassRecord
 from ...estimators.selection import select_by_fit
 from ...estimators.uncertainty import parameter_std
 from ...models.arm import ArmModel
-from .autosize import size_lines
+from .autosize import dynamic_lines, size_lines
 from .snapshots import ekf_payload
 
 __all__ = [
@@ -231,6 +231,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
         )
     if metrics.get("sizes"):
         lines += size_lines(metrics["sizes"])
+    if metrics.get("dynamics"):
+        lines += dynamic_lines(metrics["dynamics"])
     if best is not None and total:
         why = (
             "best validation FIT"

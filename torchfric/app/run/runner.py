@@ -37,7 +37,7 @@ from ..artifacts import (
 )
 from ..config import Config
 from .assessment import evaluate_model, provenance, result_warnings, scoring_engine
-from .autosize import choose_size_and_start
+from .autosize import choose_dynamic, choose_size_and_start, with_dynamic
 from .confidence import attach_covariance, attach_oe_covariance
 from .inputs import check_resources, config_model, device_named, initial_model, load_data
 from .monitors import Printer, ValidationScores
@@ -300,12 +300,18 @@ class _Run:
         self.warnings: list[str] = []
 
     def prepare(self) -> None:
-        """Load the data, size "auto", check memory and build the initial model (not on resume)."""
+        """Load the data, size and class "auto", check memory and build the initial model (not
+        on resume)."""
         cfg = self.cfg
         self.train, self.val, self.test, self.fingerprints = load_data(cfg, warnings=self.warnings)
+        auto = cfg.model.dynamic == "auto"  # the size is chosen for the static model first
         cfg, self.sizes, start = choose_size_and_start(  # model.size = "auto"
-            cfg, self.train, self.say, device=self.device
+            with_dynamic(cfg, "none") if auto else cfg, self.train, self.say, device=self.device
         )
+        cfg, self.dynamics = choose_dynamic(  # model.dynamic = "auto"
+            with_dynamic(cfg, "auto") if auto else cfg, self.train, self.say, device=self.device
+        )
+        start = None if self.dynamics and self.dynamics["chosen"] != "none" else start
         base = config_model(cfg, self.train)
         check_resources(cfg, self.train, base)
         resume = self.saved is not None
@@ -413,6 +419,7 @@ class _Run:
             "parameters": parameter_table(final, self.covariance),
             "dt": self.train[0].dt,
             **({"sizes": self.sizes} if self.sizes else {}),
+            **({"dynamics": self.dynamics} if self.dynamics else {}),
         }
         groups = {"validation": scores, "test": evaluate_model(final, self.test, cfg)}
         if not self.val:  # nothing held out: the identification records are scored at least

@@ -1,0 +1,201 @@
+"""``model.dynamic = "auto"``: static or LuGre friction chosen from the identification data alone
+(`torchfric.estimators.sizing.compare_dynamics`, `torchfric.app.run.autosize`).
+
+Two seeded 10-s records of machines whose class is known:
+
+- static: a tanh(2) arm (the static class itself: M 0.0292, b 0.01, c_m 16) simulated by
+  `torchfric.models.simulate` under the rig's identification excitation, positions quantised to
+  the rig's encoder; measured (single filters): static's held-out windows 6.5e-4 rad RMS,
+  LuGre's 1.5e-3, t = −3.4 → static;
+- LuGre: the first 10 s of the synthetic rig's identification record (`torchfric.data.rig`: LuGre
+  bristles around a Stribeck curve); static 5.2e-3 rad, LuGre 1.3e-3, t = +5.3 → LuGre.
+
+Both models start from the pre-fit of the first 70 % and run one filter each (the run's default
+ensemble gives the same choices: t = −4.1 and +5.2).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import pytest
+import torch
+
+from torchfric.app.commands.check import check_run
+from torchfric.app.commands.init import write_starter
+from torchfric.app.config import Config
+from torchfric.app.run import train
+from torchfric.app.run.autosize import choose_dynamic
+from torchfric.app.run.outcome import summary_lines
+from torchfric.data.experiment import Experiment, make_experiment
+from torchfric.data.readers import save_csv
+from torchfric.data.rig import RigParameters, excitation, rig_experiment
+from torchfric.errors import TorchfricError
+from torchfric.estimators.passes import prepared
+from torchfric.estimators.prefit import prefit
+from torchfric.estimators.selection import window_errors
+from torchfric.estimators.settings import EKFTuning
+from torchfric.estimators.sizing import HOLDOUT, compare_dynamics, held_out_heads
+from torchfric.models.arm import ArmModel
+from torchfric.models.friction import OddTanhFriction
+from torchfric.models.simulate import simulate
+
+N_SAMPLES = 10_000
+
+
+def _true_static() -> ArmModel:
+    return ArmModel(
+        OddTanhFriction(2, w1=[0.5, 5.0], w2=[0.1, 0.15]), inertia=0.0292, viscous=0.01, c_m=16.0
+    )
+
+
+def _static_record(quantised: bool = True) -> Experiment:
+    rig = RigParameters()
+    u = torch.as_tensor(excitation("identification", duration=30.0, seed=2)[:N_SAMPLES])
+    t = torch.arange(N_SAMPLES, dtype=torch.float64) * rig.dt
+    with torch.no_grad():
+        x = simulate(_true_static(), t, u, torch.zeros(2))
+    if not quantised:  # exact q and q̇
+        return make_experiment(t, u, x[:, 0], x[:, 1], name="exact")
+    q = torch.round(x[:, 0] / rig.quantum) * rig.quantum
+    return make_experiment(t, u, q, name="static").with_velocity()
+
+
+@pytest.fixture(scope="module")
+def static_record() -> Experiment:
+    return _static_record()
+
+
+@pytest.fixture(scope="module")
+def lugre_record() -> Experiment:
+    a = rig_experiment("identification", seed=0)
+    n = N_SAMPLES
+    return make_experiment(a["t"][:n], a["u"][:n], a["q"][:n], name="rig").with_velocity()
+
+
+def _starts(exp: Experiment) -> tuple[ArmModel, ArmModel]:
+    """The static and the LuGre start, both from the pre-fit of the head alone."""
+    heads = held_out_heads([exp])
+    v = float(torch.quantile(heads[0].qdot.abs(), 0.95))
+
+    def friction() -> OddTanhFriction:
+        return OddTanhFriction(3, velocity_scale=v, torque_scale=0.1)
+
+    static = prefit(ArmModel(friction(), inertia=0.03, viscous=0.01, c_m=16.0), heads).model
+    lugre = ArmModel(friction(), inertia=0.03, viscous=0.01, c_m=16.0, dynamic="lugre",
+                     sigma0=1000.0, sigma1=2 * math.sqrt(30.0), stick_velocity=0.01 * v)  # fmt: skip
+    return static, lugre.with_static(static)
+
+
+def test_auto_keeps_the_static_model_on_static_data(static_record: Experiment) -> None:
+    static, lugre = _starts(static_record)
+    r = compare_dynamics(static, lugre, [static_record], EKFTuning())
+    assert r.chosen == "none"
+    assert r.rmse["none"] < r.rmse["lugre"] and r.t < -2.0
+    assert r.windows == 59  # 3000 held-out samples, windows of 50 samples
+    assert set(r.thetas) == {"none", "lugre"}
+
+
+def test_auto_keeps_lugre_on_lugre_data(lugre_record: Experiment) -> None:
+    static, lugre = _starts(lugre_record)
+    r = compare_dynamics(static, lugre, [lugre_record], EKFTuning())
+    assert r.chosen == "lugre"
+    assert r.rmse["lugre"] < 0.5 * r.rmse["none"] and r.t > 2.0
+    d = r.to_dict()
+    assert d["criterion"] == "windowed_prediction" and d["t_min"] == 2.0
+    assert [row["dynamic"] for row in d["table"]] == ["none", "lugre"]
+    assert [row["chosen"] for row in d["table"]] == [False, True]
+
+
+def test_the_held_out_end_never_reaches_the_identification(static_record: Experiment) -> None:
+    """The identified θ depend on the heads only: a different end of the record changes the
+    windows' scores, never θ."""
+    static, lugre = _starts(static_record)
+    tuning = EKFTuning(passes=2)
+    one = compare_dynamics(static, lugre, [static_record], tuning)
+    cut = static_record.n - round(HOLDOUT * static_record.n)
+    q = static_record.q.clone()
+    q[cut:] += 0.01 * torch.sin(torch.arange(static_record.n - cut) * 0.01)
+    changed = make_experiment(static_record.t, static_record.u, q, name="static")
+    changed = changed.with_velocity()
+    changed = make_experiment(static_record.t, static_record.u, q,
+                              torch.cat([static_record.qdot[:cut], changed.qdot[cut:]]))  # fmt: skip
+    two = compare_dynamics(static, lugre, [changed], tuning)
+    for key in ("none", "lugre"):
+        assert torch.equal(one.thetas[key], two.thetas[key])
+        assert one.rmse[key] != two.rmse[key]
+
+
+def test_window_errors_of_the_true_model_on_exact_data_vanish() -> None:
+    """Noise-free data of the static class, q and q̇ measured: the true θ's windows predict the
+    record to the filter's own small error, a wrong inertia's do not."""
+    exp = _static_record(quantised=False)
+    true = _true_static()
+    tuning = prepared([exp], EKFTuning(r=[1e-12, 1e-8], q_state=[0.0, 1e-12]), 6, "test")[1]
+    theta = true.get_theta()
+    start = exp.n - 3000
+    right = window_errors(true, theta, exp, tuning, start, 50)
+    wrong_theta = theta.clone()
+    wrong_theta[true.theta_names.index("inertia")] += math.log(1.2)
+    wrong = window_errors(true, wrong_theta, exp, tuning, start, 50)
+    assert right.shape == (59,)
+    assert float(right.max().sqrt()) < 1e-12  # rad, against q of order 1 (measured 1.3e-14)
+    assert float(wrong.mean().sqrt()) > 100 * float(right.mean().sqrt())
+
+
+def test_a_record_too_short_to_hold_a_window_out_is_a_one_line_error(
+    static_record: Experiment,
+) -> None:
+    short = static_record.slice(0, 120)
+    static, lugre = _starts(static_record)
+    with pytest.raises(TorchfricError, match='model.dynamic = "auto" holds out the last 30%'):
+        compare_dynamics(static, lugre, [short], EKFTuning())
+
+
+def _config(tmp_path: pathlib.Path, **model: object) -> Config:
+    return Config.from_dict(
+        {
+            "name": "classed",
+            "out_dir": str(tmp_path / "runs"),
+            "data": {"train": [str(tmp_path / "rig.csv")], "validation": []},
+            "model": {"c_m": 16.0, **model},
+            "estimator": {"ensemble": 0, "passes": 3},
+        }
+    )
+
+
+def test_a_run_with_dynamic_auto_trains_the_chosen_class(
+    lugre_record: Experiment, tmp_path: pathlib.Path
+) -> None:
+    save_csv(tmp_path / "rig.csv", lugre_record, include_qdot=False)
+    cfg = _config(tmp_path, dynamic="auto")
+    assert "friction class auto" in check_run(cfg)  # checks the LuGre model; runs no filter
+    lines: list[str] = []
+    result = train(cfg, say=lines.append)
+    assert result.model.dynamic == "lugre"
+    dyn = result.metrics["dynamics"]
+    assert dyn["chosen"] == "lugre" and dyn["windows"] == 59
+    saved = json.loads((result.run_dir / "metrics.json").read_text())
+    assert saved["dynamics"]["table"] == dyn["table"]
+    assert 'dynamic = "auto"' in (result.run_dir / "config.toml").read_text()
+    assert "<h2>Friction class</h2>" in (result.run_dir / "report.html").read_text()
+    summary = summary_lines(result.metrics, {"run": str(result.run_dir)})
+    assert any(line.startswith("friction class LuGre chosen") for line in summary)
+    assert any(line.endswith("← chosen") and line.split()[0] == "LuGre" for line in summary)
+    assert any('model.dynamic = "auto"' in line for line in lines)
+    # a fixed class runs no comparison and records none
+    plain, table = choose_dynamic(_config(tmp_path, dynamic="none"), [lugre_record])
+    assert table is None and plain.model.dynamic == "none"
+
+
+def test_init_proposes_auto_and_a_bad_value_names_it(
+    static_record: Experiment, tmp_path: pathlib.Path
+) -> None:
+    save_csv(tmp_path / "rig.csv", static_record, include_qdot=False)
+    write_starter(tmp_path / "rig.csv", c_m=16.0, out=tmp_path / "cfg.toml")
+    cfg = Config.load(tmp_path / "cfg.toml")
+    assert cfg.model.dynamic == "auto"
+    with pytest.raises(TorchfricError, match=r"model.dynamic = \"lagre\".*\"auto\""):
+        _config(tmp_path, dynamic="lagre")
