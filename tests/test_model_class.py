@@ -185,6 +185,10 @@ def test_a_run_with_dynamic_auto_trains_the_chosen_class(
     assert any(line.startswith("friction class LuGre chosen") for line in summary)
     assert any(line.endswith("← chosen") and line.split()[0] == "LuGre" for line in summary)
     assert any('model.dynamic = "auto"' in line for line in lines)
+    # the chosen class trains as a run of that class alone: the same model, bit for bit
+    fixed = train(_config(tmp_path, dynamic="lugre"), say=lambda _: None)
+    assert torch.equal(fixed.model.get_theta(), result.model.get_theta())
+    assert "dynamics" not in fixed.metrics
     # a fixed class runs no comparison and records none
     plain, table = choose_dynamic(_config(tmp_path, dynamic="none"), [lugre_record])
     assert table is None and plain.model.dynamic == "none"
@@ -199,3 +203,30 @@ def test_init_proposes_auto_and_a_bad_value_names_it(
     assert cfg.model.dynamic == "auto"
     with pytest.raises(TorchfricError, match=r"model.dynamic = \"lagre\".*\"auto\""):
         _config(tmp_path, dynamic="lagre")
+
+
+def test_the_bristles_start_from_the_data_in_its_own_units(
+    lugre_record: Experiment, tmp_path: pathlib.Path
+) -> None:
+    """Unset σ0 starts at one position step of pre-sliding under the start's static friction at
+    the stick velocity (the rig's own design: Fs/σ0 is one 2e-4-rad count), σ1 critically
+    damped with the pre-fit's inertia; in millirad the step is 1000× and σ0 follows it."""
+    from torchfric.app.run.inputs import config_model, initial_model, position_step
+
+    assert position_step([lugre_record]) == pytest.approx(RigParameters().quantum, rel=1e-9)
+    save_csv(tmp_path / "rig.csv", lugre_record, include_qdot=False)
+    milli = make_experiment(lugre_record.t, lugre_record.u, 1000 * lugre_record.q, name="mrad")
+    milli = milli.with_velocity()
+    assert position_step([milli]) == pytest.approx(1000 * RigParameters().quantum, rel=1e-9)
+    cfg = _config(tmp_path, dynamic="lugre")
+    for exp in (lugre_record, milli):
+        start = initial_model(cfg, [exp], config_model(cfg, [exp]))[0]
+        p = start.physical_parameters()
+        v_stick = torch.tensor([p["lugre_vstick"]], dtype=torch.float64)
+        with torch.no_grad():
+            level = float(start.static_twin().friction_torque(v_stick).abs()[0])
+        assert p["lugre_sigma0"] == pytest.approx(level / position_step([exp]), rel=1e-12)
+        assert p["lugre_sigma1"] == pytest.approx(2 * math.sqrt(p["lugre_sigma0"] * p["inertia"]))
+    # a given value is kept as given
+    given = initial_model(_config(tmp_path, dynamic="lugre", sigma0=700.0), [lugre_record])[0]
+    assert given.physical_parameters()["lugre_sigma0"] == pytest.approx(700.0)

@@ -232,9 +232,15 @@ class ModelConfig(TableSection):
             ``dynamics``, the summary and report.html). The validation and test records are
             not read. A run then trains the chosen class on all the data (about 2.4× the time
             of a run of one class).
-        sigma0: initial bristle stiffness σ0 [torque per unit of q] of "lugre".
+        sigma0: initial bristle stiffness σ0 [torque per unit of q] of "lugre"; ``None`` = from
+            the data: the pre-sliding range starts at one position step (encoder count) of the
+            identification records, ``σ0 = |F(v_s)| / Δq`` with F the starting model's static
+            friction at the stick velocity and Δq the records' smallest position step
+            (`torchfric.app.run.inputs.position_step`), so the start scales with the data's
+            units as the machine does.
         sigma1: initial bristle damping σ1 [torque per unit of q̇]; ``None`` = critically damped
-            from σ0 and the inertia guess, ``2 sqrt(σ0 M)``.
+            from σ0 and the starting inertia (the pre-fit's, with ``init = "prefit"``),
+            ``2 sqrt(σ0 M)``.
         stick_velocity: initial stick velocity v_s of "lugre" [unit of q̇]: below it the sliding
             curve is held at its value there, the static friction; ``None`` = 1 % of the
             velocity scale.
@@ -256,7 +262,7 @@ class ModelConfig(TableSection):
     init: str = "prefit"
     asymmetric: float | None = None
     dynamic: str = "none"
-    sigma0: float = 1000.0
+    sigma0: float | None = None
     sigma1: float | None = None
     stick_velocity: float | None = None
 
@@ -292,7 +298,7 @@ class ModelConfig(TableSection):
         c.string("init")
         _check_sizes(c, self)
         c.string("dynamic", choices=DYNAMIC_CHOICES)
-        c.number("sigma0", gt=0.0)
+        c.number("sigma0", gt=0.0, optional=True, example=1000.0)
         c.number("sigma1", gt=0.0, optional=True, example=10.0)
         c.number("stick_velocity", gt=0.0, optional=True, example=0.05)
 

@@ -239,9 +239,44 @@ def _bristles(m: Any, v_scale: float) -> dict[str, Any]:
     `model.velocity_scale` is unset too; for the baselines `model.velocity_scale`, else 1))."""
     if m.dynamic == "none":
         return {}
-    sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(m.sigma0 * m.inertia)
+    sigma0 = m.sigma0 if m.sigma0 is not None else 1000.0  # (then set from the data, `_from_data`)
+    sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(sigma0 * m.inertia)
     v_stick = m.stick_velocity if m.stick_velocity is not None else 0.01 * v_scale
-    return {"dynamic": m.dynamic, "sigma0": m.sigma0, "sigma1": sigma1, "stick_velocity": v_stick}
+    return {"dynamic": m.dynamic, "sigma0": sigma0, "sigma1": sigma1, "stick_velocity": v_stick}
+
+
+def position_step(train: list[Experiment]) -> float:
+    """The records' position step Δq: the 1st percentile of the nonzero |q[k+1] − q[k]| (one
+    encoder count for a quantised record, a fraction of the noise for an analogue one); NaN
+    when q never moves."""
+    steps = torch.cat([(e.q[1:] - e.q[:-1]).abs().to(torch.float64) for e in train])
+    steps = steps[steps > 0]
+    return float(torch.quantile(steps[:1_000_000], 0.01)) if steps.numel() else math.nan
+
+
+def _from_data(m: Any, model: ArmModel, train: list[Experiment]) -> ArmModel:
+    """A dynamic `model` whose unset σ0 (and σ1) start from the data (`ModelConfig.sigma0`):
+    one position step of pre-sliding under the model's static friction, critically damped
+    with the model's inertia."""
+    if m.sigma0 is not None and m.sigma1 is not None:
+        return model
+    params = model.physical_parameters()
+    v_stick = torch.tensor([params["lugre_vstick"]], dtype=torch.float64)
+    with torch.no_grad():
+        level = float(model.static_twin().friction_torque(v_stick).abs()[0])
+    drive = max(float(torch.quantile((e.u * model.c_m).abs().to(torch.float64), 0.95))
+                for e in train)  # fmt: skip
+    step = position_step(train)
+    sigma0 = m.sigma0
+    if sigma0 is None and math.isfinite(step):
+        sigma0 = max(level, 1e-3 * drive) / step
+    sigma0 = sigma0 if sigma0 is not None else params["lugre_sigma0"]
+    sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(sigma0 * params["inertia"])
+    values = model.to_physical(model.get_theta()).clone()
+    names = model.theta_names
+    values[names.index("lugre_sigma0")] = sigma0
+    values[names.index("lugre_sigma1")] = sigma1
+    return model.set_theta(model.from_physical(values))
 
 
 def initial_model(
@@ -253,21 +288,23 @@ def initial_model(
     init = cfg.model.init
     base = config_model(cfg, train) if base is None else base
     if init == "config":
-        return base, "config"
+        return (base if base.state_size == 2 else _from_data(cfg.model, base, train)), "config"
     if init == "prefit":
         if base.state_size == 2:
             return prefit(base, train).model, "prefit"
         # A dynamic model: the static twin's pre-fit (its θ is the dynamic θ without σ0, σ1,
-        # which keep their configured guesses: equation error cannot see the bristles).
+        # which keep their configured guesses or start from the data: equation error cannot
+        # see the bristles).
         static = prefit(base.static_twin(), train).model
-        return base.with_static(static), "prefit"
+        return _from_data(cfg.model, base.with_static(static), train), "prefit"
     warm = load_checkpoint(init)
     if (
         base.state_size != 2
         and warm.state_size == 2
         and warm.theta_names == base.static_twin().theta_names
     ):
-        return base.with_static(warm), f"checkpoint:{init}"  # a static fit starts a LuGre one
+        # a static fit starts a LuGre one
+        return _from_data(cfg.model, base.with_static(warm), train), f"checkpoint:{init}"
     if warm.theta_names != base.theta_names:
         raise TorchfricError(
             f"model.init checkpoint {init} has parameters {warm.theta_names} but this config's model "
