@@ -78,12 +78,12 @@ AXES: dict[str, tuple[str, AxisParameters]] = {  # model → (record name, machi
     "tanh-linear": ("linear", LINEAR_AXIS),
 }
 SETS: dict[str, list[str]] = {
-    "tanh": ["model.friction=tanh"],
-    "polytopic": ["model.friction=polytopic"],
+    "tanh": ["model.friction=tanh", "model.dynamic=none"],
+    "polytopic": ["model.friction=polytopic", "model.dynamic=none"],
     "lugre": ["model.friction=tanh", "model.dynamic=lugre"],
-    "tanh-coulomb": ["model.friction=tanh"],
-    "tanh-openloop": ["model.friction=tanh"],
-    "tanh-linear": ["model.friction=tanh"],
+    "tanh-coulomb": ["model.friction=tanh", "model.dynamic=none"],
+    "tanh-openloop": ["model.friction=tanh", "model.dynamic=none"],
+    "tanh-linear": ["model.friction=tanh", "model.dynamic=none"],
 }
 OPEN_LOOP_NOISE = 97  # the replay's noise seed is [seed, this, kind]: independent of the loop's
 FRACTIONS = (0.1, 0.25, 0.5, 0.75, 0.9)  # of the 95th percentile of |q̇_true|

@@ -130,7 +130,8 @@ def identify(folder: pathlib.Path, axis: AxisParameters) -> pathlib.Path:
     )
     write_csv(folder / "ident.csv", rec)
     for argv in (["init", "ident.csv", "--c-m", repr(axis.c_m), "--out", "cfg.toml", "--force"],
-                 ["train", "cfg.toml", "--out", "run", "--quiet", "--overwrite"]):  # fmt: skip
+                 ["train", "cfg.toml", "--out", "run", "--quiet", "--overwrite",
+                  "--set", "model.dynamic=none"]):  # fmt: skip
         done = subprocess.run([*CLI, *argv], cwd=folder, capture_output=True, text=True)
         if done.returncode != 0:
             raise SystemExit(f"torchfric {argv[0]} failed: {done.stderr.strip()[-500:]}")
@@ -267,7 +268,8 @@ def carriage_rows(d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
         record("ident", 30.0, IDENT_SEED, None)
         for argv in (["init", "ident.csv", "--c-m", "12", "--counts-per-m", "1e6", "--out",
                       "cfg.toml", "--force"],
-                     ["train", "cfg.toml", "--out", "run", "--quiet", "--overwrite"]):  # fmt: skip
+                     ["train", "cfg.toml", "--out", "run", "--quiet", "--overwrite",
+                      "--set", "model.dynamic=none"]):  # fmt: skip
             done = subprocess.run([*CLI, *argv], cwd=folder, capture_output=True, text=True)
             if done.returncode != 0:
                 raise SystemExit(f"torchfric {argv[0]} failed: {done.stderr.strip()[-500:]}")
