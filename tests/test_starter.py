@@ -100,7 +100,9 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert "rec.csv: 4000 samples, dt 0.001 s (1000 Hz), 3.999 s" in out
     assert re.search(r"^validation  none$", out, re.M)
     assert "highpass (causal high-pass differentiator, cut-off 200 Hz)" in out
-    assert "tanh friction, size 3, 8 parameters, c_m 16 (known, fixed)" in out
+    # model.dynamic = "auto": the larger (LuGre) of the two models it compares is checked
+    assert "tanh friction, size 3, friction class auto (static and LuGre identified" in out
+    assert "11 parameters, c_m 16 (known, fixed)" in out
     assert "ekf: up to 30 passes (tolerance 0.5), ensemble of 9 filters" in out
     assert "4000 samples × 30 passes × 9 filter(s) = 1,080,000 filter steps" in out
     inertia = float(re.search(r"pre-fit on the identification data: inertia (\S+),", out)[1])
@@ -369,22 +371,27 @@ def test_white_box_terms_are_offered_commented_out_and_each_works(  # type: igno
     assert getattr(Config.load(user / "on.toml").model, key) == value
     assert main(["check", "on.toml"]) == 0  # the model builds and the pre-fit runs with it
     out = capsys.readouterr().out
-    assert f"9 parameters, c_m 16 (known, fixed); terms: {term}" in out
+    assert f"12 parameters, c_m 16 (known, fixed); terms: {term}" in out  # auto: LuGre checked
 
 
-def test_lugre_is_offered_commented_out_and_works(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+def test_the_friction_class_is_auto_as_written_and_lugre_works(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
     _csv(user / "rec.csv", record)
     assert main(["init", "rec.csv", "--c-m", "16"]) == 0
     capsys.readouterr()
     text = (user / "rec.toml").read_text()
-    line = '# dynamic = "lugre"'
-    assert text.split("\n[model]\n")[1].count(f"\n{line}\n") == 1
-    assert Config.load(user / "rec.toml").model.dynamic == "none"  # off as written
+    line = 'dynamic = "auto"'
+    model = text.split("\n[model]\n")[1].split("\n[estimator]\n")[0]
+    assert model.count(f"\n{line}\n") == 1
+    above = re.search(rf"((?:^# .*\n)+){re.escape(line)}$", model, re.M)[1]
+    assert "LuGre is kept only if it predicts the held-out" in above.replace("\n# ", " ")
+    assert Config.load(user / "rec.toml").model.dynamic == "auto"
     (user / "on.toml").write_text(text.replace(f"\n{line}\n", '\ndynamic = "lugre"\n'))
     assert Config.load(user / "on.toml").model.dynamic == "lugre"
     assert main(["check", "on.toml"]) == 0
     out = capsys.readouterr().out
-    assert "with LuGre bristles (sigma0 1000, sigma1" in out and "11 parameters" in out
+    # σ0 unset starts from the data (one position step of pre-sliding), not a fixed number
+    sigma0 = float(re.search(r"with LuGre bristles \(sigma0 (\S+), sigma1", out)[1])
+    assert "11 parameters" in out and "friction class auto" not in out and sigma0 != 1000.0
 
 
 @pytest.mark.parametrize(
