@@ -230,3 +230,25 @@ def test_the_bristles_start_from_the_data_in_its_own_units(
     # a given value is kept as given
     given = initial_model(_config(tmp_path, dynamic="lugre", sigma0=700.0), [lugre_record])[0]
     assert given.physical_parameters()["lugre_sigma0"] == pytest.approx(700.0)
+
+
+def test_a_dynamic_model_whose_filters_all_diverge_leaves_the_static_one(
+    static_record: Experiment, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """LuGre's filters all diverging (`compare_sizes` raises) is no error: the static model is
+    kept, LuGre's row says it diverged."""
+    from torchfric.estimators import sizing
+
+    real = sizing.compare_sizes
+
+    def diverging(starts, *args, **kwargs):  # type: ignore[no-untyped-def]
+        if next(iter(starts.values())).dynamic == "lugre":
+            raise TorchfricError("every filter of every size (1) diverged")
+        return real(starts, *args, **kwargs)
+
+    monkeypatch.setattr(sizing, "compare_sizes", diverging)
+    static, lugre = _starts(static_record)
+    r = compare_dynamics(static, lugre, [static_record], EKFTuning(passes=2))
+    assert r.chosen == "none" and r.t == -math.inf and r.rmse["lugre"] == math.inf
+    row = r.to_dict()["table"][1]
+    assert row["dynamic"] == "lugre" and row["bic"] == math.inf and not row["chosen"]

@@ -56,6 +56,7 @@ from torch import Tensor
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
+from .ekf import FilterFailure
 from .ensemble import _filter_members, make_masked_step, member_grid
 from .observers import Callback
 from .passes import (
@@ -406,9 +407,10 @@ def compare_dynamics(
     starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
     mean squared position errors are compared pair by pair. The dynamic model is kept only when
     its windows predict better by more than `T_MIN` standard errors of the mean difference;
-    otherwise the static model, the simpler one, is. A LuGre model whose bristles are stiff
-    (σ0 → ∞) simulates as its static curve does: its windows tie with the static model's, and
-    the tie keeps the static model.
+    otherwise (a tie, or every dynamic filter diverging) the static model, the simpler one, is.
+    What the windows see is stiction as much as bristle dynamics: a static curve through zero
+    cannot stick, so on machines with sharp stiction LuGre often predicts better whatever its
+    σ0 (docs/results.md, "Static, LuGre or auto").
 
     Raises:
         TorchfricError: no record is long enough to hold a window out, or the static model's
@@ -435,8 +437,9 @@ def compare_dynamics(
     (a_key, a), (b_key, b) = mse.items()
     if not bool(torch.isfinite(a).all()):
         raise TorchfricError(
-            "every filter of the static model diverged on the identification "
-            "records; start from model.init = 'prefit' or lower estimator.p0_theta"
+            'model.dynamic = "auto": the static model\'s filters diverged on the first '
+            f"{1 - holdout:.0%} of the identification records; start from model.init = "
+            "'prefit', lower estimator.p0_theta, or check model.c_m and the data's units"
         )
     d = a - b if bool(torch.isfinite(b).all()) else torch.full_like(a, -math.inf)
     n = d.numel()
@@ -462,25 +465,21 @@ def _identify_and_predict(
     whose filters all diverged)."""
     scores, thetas, mse = {}, {}, {}
     for key, start in starts.items():
-        r = compare_sizes({1: start}, heads, tuning, spec, device=device)
+        mse[key] = torch.full((1,), math.inf, dtype=torch.float64)  # until it predicts
+        try:
+            r = compare_sizes({1: start}, heads, tuning, spec, device=device)
+        except TorchfricError:  # every filter of this class diverged
+            k = start.num_parameters
+            scores[key] = SizeScore(1, k, -math.inf, math.inf, -1, math.nan, math.nan, 0, 0, 0)
+            thetas[key] = start.get_theta()
+            continue
         score, theta = r.scores[0], r.thetas[1]
         scores[key], thetas[key] = score, theta
-        if not math.isfinite(score.bic):
-            mse[key] = torch.full((1,), math.inf, dtype=torch.float64)
-            continue
         resolved = prepared(heads, tuning, start.num_parameters, "compare_dynamics")[1]
-        errs = [
-            window_errors(
-                start,
-                theta,
-                exp,
-                resolved,
-                cut,
-                window,
-                q_scale=score.q_scale,
-                r_scale=score.r_scale,
-            )  # fmt: skip
-            for exp, cut, window in picks
-        ]
+        kw = {"q_scale": score.q_scale, "r_scale": score.r_scale}
+        try:
+            errs = [window_errors(start, theta, e, resolved, c, w, **kw) for e, c, w in picks]
+        except FilterFailure:  # its fixed-θ filter failed on a whole record: no prediction
+            continue
         mse[key] = torch.nan_to_num(torch.cat(errs), nan=math.inf)
     return scores, thetas, mse
