@@ -180,7 +180,8 @@ def test_a_run_with_dynamic_auto_trains_the_chosen_class(
     saved = json.loads((result.run_dir / "metrics.json").read_text())
     assert saved["dynamics"]["table"] == dyn["table"]
     assert 'dynamic = "auto"' in (result.run_dir / "config.toml").read_text()
-    assert "<h2>Friction class</h2>" in (result.run_dir / "report.html").read_text()
+    report = (result.run_dir / "report.html").read_text()
+    assert "<h2>Friction class</h2>" in report and "% lower, " in report
     summary = summary_lines(result.metrics, {"run": str(result.run_dir)})
     assert any(line.startswith("friction class LuGre chosen") for line in summary)
     assert any(line.endswith("← chosen") and line.split()[0] == "LuGre" for line in summary)

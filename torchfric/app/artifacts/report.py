@@ -223,6 +223,7 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
     if not dyn:
         return ""
     names = {"none": "static", "lugre": "LuGre"}
+    gain = dyn["gain"]  # (not finite when LuGre diverged: shown as –)
     rows = []
     for r in dyn["table"]:
         mark = '<span class="ok">chosen</span>' if r["chosen"] else ""
@@ -241,7 +242,8 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
         f"{1 - dyn['holdout']:.0%} of each identification record; each then predicted the last "
         f"{dyn['holdout']:.0%} in {_e(dyn['windows'])} open-loop windows of "
         f"{dyn['window_seconds']:g} s, each started from its own filter's estimate. LuGre's "
-        f"mean squared error was {_num(100 * dyn['gain'], '+.1f')} % lower, "
+        f"mean squared error was {_num(100 * abs(gain), '.1f')} % "
+        f"{'lower' if gain >= 0 else 'higher'}, "
         f"{_num(dyn['t'], '.1f')} standard errors of the paired difference; LuGre is kept only "
         f"above {dyn['t_min']:g} (a tie keeps the simpler static model). The one-step BIC is "
         "shown but not used: the bristle state's extra freedom raises the filter's likelihood on "
