@@ -37,6 +37,7 @@ from torch import Tensor
 from .friction import Friction
 
 __all__ = [
+    "CLASS_NAMES",
     "DYNAMICS",
     "LUGRE_NAMES",
     "bristle_field",
@@ -53,6 +54,8 @@ LUGRE_NAMES: tuple[str, str, str] = ("lugre_sigma0", "lugre_sigma1", "lugre_vsti
 
 # `model.dynamic` values: "none" (the static arm, state [q, q̇]) and "lugre" ([q, q̇, z]).
 DYNAMICS: tuple[str, ...] = ("none", "lugre")
+CLASS_NAMES: dict[str, str] = {"none": "static", "lugre": "LuGre"}
+"""Each of `DYNAMICS` as summaries and reports name it."""
 
 
 def positive_level(c: Tensor) -> Tensor:

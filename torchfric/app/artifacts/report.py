@@ -24,6 +24,7 @@ from ...data import Experiment
 from ...estimators.metrics import SimulationScore
 from ...files import atomic_write_text
 from ...models.arm import ArmModel
+from ...models.lugre import CLASS_NAMES
 from .figures import (
     friction_figure,
     png_bytes,
@@ -222,13 +223,12 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
     dyn = metrics.get("dynamics")
     if not dyn:
         return ""
-    names = {"none": "static", "lugre": "LuGre"}
     gain = dyn["gain"]  # (not finite when LuGre diverged: shown as –)
     rows = []
     for r in dyn["table"]:
         mark = '<span class="ok">chosen</span>' if r["chosen"] else ""
         rows.append(
-            f"<tr><td>{_e(names.get(r['dynamic'], r['dynamic']))}</td>"
+            f"<tr><td>{_e(CLASS_NAMES.get(r['dynamic'], r['dynamic']))}</td>"
             f"<td class='num'>{_e(r['parameters'])}</td><td class='num'>{_num(r['rmse_q'], '.4g')}</td>"
             f"<td class='num'>{_num(r['bic'], '.1f')}</td>"
             f"<td class='num'>{_e(r['diverged'])} of {_e(r['members'])}</td><td>{mark}</td></tr>"

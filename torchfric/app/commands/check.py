@@ -23,6 +23,7 @@ from ...data import DEFAULT_CUTOFF_HZ, Experiment
 from ...data.units import si_unit
 from ...data.velocity import settling_samples
 from ...errors import TorchfricError
+from ...estimators.sizing import HOLDOUT
 from ...models.arm import ArmModel
 from ...resources import format_bytes
 from ..artifacts import next_run_dir
@@ -127,8 +128,9 @@ def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -
     what = f"{m.friction} friction" + (f", size {size}" if sized else "")
     if m.dynamic == "auto":
         what += (
-            ", friction class auto (static and LuGre identified on the first 70 % of the "
-            "records, the better predictor of the last 30 % kept; LuGre shown here)"
+            f", friction class auto (static and LuGre identified on the first {1 - HOLDOUT:.0%} "
+            f"of the records, the better predictor of the last {HOLDOUT:.0%} kept; LuGre shown "
+            "here)"
         )
     if base.state_size != 2:
         # the values the run starts from (a checkpoint's, when model.init names one)
@@ -235,8 +237,11 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     lines += _estimator_lines(cfg, sum(e.n for e in train))
     estimate = estimate_run(one, train, start, timed=timed)
     if cfg.model.dynamic == "auto" and estimate.seconds is not None:
-        # both classes on 70 % of the data, then the chosen one on all of it
-        estimate = dataclasses.replace(estimate, seconds=tuple(2.4 * s for s in estimate.seconds))
+        # both classes on the head of the data (1 − HOLDOUT), then the chosen one on all of it
+        factor = 2 * (1 - HOLDOUT) + 1
+        estimate = dataclasses.replace(
+            estimate, seconds=tuple(factor * s for s in estimate.seconds)
+        )
     lines += _estimate_lines(estimate, t_start, init_kind)
     lines += [_line("warning", w) for w in found]
     if warnings is not None:

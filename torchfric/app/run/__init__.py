@@ -5,8 +5,8 @@
 - `runner`: `train` (data → initial model → estimator with observers → checkpoint);
 - `inputs`: the config's data → experiments, resource checks, the initial model, the
   estimate of a run's time and memory;
-- `autosize`: ``model.size = "auto"``, sizes tried before the run proper; `autosize`:
-  ``model.dynamic = "auto"``, static or LuGre friction chosen before it the same way;
+- `autosize`: ``model.size = "auto"`` and ``model.dynamic = "auto"``, the sizes and the two
+  friction classes tried before the run proper;
 - `confidence`: the kept θ's covariance (prediction-error sandwich) and identifiability;
 - `assessment`: scores and warnings of a finished model;
 - `outcome`: the kept pass, the parameter table and the summary lines;

@@ -47,6 +47,7 @@ from ...estimators.sizing import (
     held_out_heads,
     nests,
 )
+from ...models.lugre import CLASS_NAMES
 from ...resources import ekf_bytes, require_memory
 from ..config import AUTO_SIZES, Config
 from .inputs import check_resources, config_model, initial_model
@@ -140,15 +141,18 @@ def size_lines(sizes: Mapping[str, Any]) -> list[str]:
         f"  {'size':>4}  {'k':>3}  {'log-likelihood ℓ':>16}  {'BIC':>14}",
     ]
     for row in sizes["table"]:
-        ll, bic = row["loglik"], row["bic"]
-        ll_text = f"{ll:16.1f}" if math.isfinite(ll) else f"{'diverged':>16}"
-        bic_text = f"{bic:14.1f}" if math.isfinite(bic) else f"{'–':>14}"
+        ll_text = _cell(row["loglik"], 16, ".1f", "diverged")
         mark = "  ← chosen" if row["chosen"] else ""
-        lines.append(f"  {row['size']:>4}  {row['parameters']:>3}  {ll_text}  {bic_text}{mark}")
+        lines.append(
+            f"  {row['size']:>4}  {row['parameters']:>3}  {ll_text}  "
+            f"{_cell(row['bic'], 14, '.1f', '–')}{mark}"
+        )
     return lines
 
 
-NAMES = {"none": "static", "lugre": "LuGre"}
+def _cell(value: float, width: int, fmt: str, missing: str) -> str:
+    """`value` right-aligned in `width` characters, or `missing` when it is not finite."""
+    return f"{value:{width}{fmt}}" if math.isfinite(value) else f"{missing:>{width}}"
 
 
 def with_dynamic(cfg: Config, dynamic: str) -> Config:
@@ -194,7 +198,7 @@ def choose_dynamic(
 def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
     """The comparison of friction classes (metrics' ``dynamics``) as text lines: the summary's
     and the progress output's."""
-    chosen = NAMES.get(dynamics["chosen"], dynamics["chosen"])
+    chosen = CLASS_NAMES.get(dynamics["chosen"], dynamics["chosen"])
     lines = [
         f"friction class {chosen} chosen by open-loop prediction of held-out data: "
         f"{dynamics['windows']} windows of {dynamics['window_seconds']:g} s in the last "
@@ -202,12 +206,13 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
         f"  {'class':<7} {'k':>3}  {'RMS q error':>12}  {'BIC (for reference)':>20}",
     ]
     for row in dynamics["table"]:
-        rmse, bic = row["rmse_q"], row["bic"]
-        rmse_text = f"{rmse:12.4g}" if math.isfinite(rmse) else f"{'diverged':>12}"
-        bic_text = f"{bic:20.1f}" if math.isfinite(bic) else f"{'–':>20}"
+        rmse_text = _cell(row["rmse_q"], 12, ".4g", "diverged")
         mark = "  ← chosen" if row["chosen"] else ""
-        name = NAMES.get(row["dynamic"], row["dynamic"])
-        lines.append(f"  {name:<7} {row['parameters']:>3}  {rmse_text}  {bic_text}{mark}")
+        name = CLASS_NAMES.get(row["dynamic"], row["dynamic"])
+        lines.append(
+            f"  {name:<7} {row['parameters']:>3}  {rmse_text}  "
+            f"{_cell(row['bic'], 20, '.1f', '–')}{mark}"
+        )
     t = dynamics["t"]
     t_text = f"{t:.1f}" if math.isfinite(t) else ("+∞" if t > 0 else "−∞")
     gain = dynamics["gain"]
