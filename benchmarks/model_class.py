@@ -6,8 +6,9 @@
 Every row is a user's path: a machine's identification record (the built-in rig's, EMPS's, or one
 written by an independent simulator, `torchfric.data.axis`, as a ``t,u,q`` CSV with ``torchfric
 init IDENT.csv --c-m C_M``, which writes ``dynamic = "auto"``), trained twice with ``torchfric
-train``: once as written (auto: the class it chooses, its t statistic and the windows' RMS
-errors, read from ``metrics.json``'s ``dynamics``) and once with the other class fixed
+train``: once as written (auto: the class it chooses, its t statistic, the windows' RMS errors
+and LuGre's bristle travel through a reversal in position steps, read from ``metrics.json``'s
+``dynamics``) and once with the other class fixed
 (``--set model.dynamic=none`` or ``lugre``). Auto's trained model is the chosen class's fixed
 run, bit for bit (`tests/test_model_class.py`), so the two runs give both classes' scores.
 
@@ -130,6 +131,7 @@ def one(out: Path, machine: str, seed: int) -> dict[str, Any]:
     speeds = _speeds(machine, seed)
     row: dict[str, Any] = {"machine": machine, "seed": seed, "chosen": chosen, "t": dyn["t"],
                            "gain": dyn["gain"], "auto_seconds": secs,
+                           "travel_steps": dyn["bristle_travel"] / dyn["position_step"],
                            "rmse": {r["dynamic"]: r["rmse_q"] for r in dyn["table"]}}  # fmt: skip
     row[chosen] = _score(machine, metrics, ckpt, m_true, truth, speeds) | {"seconds": None}
     metrics2, ckpt2, secs2 = _train(folder, cfg, [*sets, f"model.dynamic={other}"], other)
@@ -151,7 +153,7 @@ def _speeds(machine: str, seed: int) -> np.ndarray:
 
 
 def print_table(rows: list[dict]) -> None:
-    head = ("machine", "seed", "auto keeps", "t", "MSE gain", "static FIT q / RMSE",
+    head = ("machine", "seed", "auto keeps", "t", "MSE gain", "bristle travel", "static FIT q / RMSE",
             "LuGre FIT q / RMSE", "static M err", "LuGre M err", "static curve", "LuGre curve",
             "auto time", "other time")  # fmt: skip
     print("| " + " | ".join(head) + " |")
@@ -168,7 +170,7 @@ def print_table(rows: list[dict]) -> None:
         other = s if r["chosen"] == "lugre" else d
         print(
             f"| {r['machine']} | {r['seed']} | {NAMES[r['chosen']]} | {r['t']:+.1f} | "
-            f"{100 * r['gain']:+.1f} % | {fit(s)} | {fit(d)} | {pct(s, 'inertia_err_pct')} | "
+            f"{100 * r['gain']:+.1f} % | {r['travel_steps']:.2f} steps | {fit(s)} | {fit(d)} | {pct(s, 'inertia_err_pct')} | "
             f"{pct(d, 'inertia_err_pct')} | {s.get('curve_err_pct', float('nan')):.2f} % | "
             f"{d.get('curve_err_pct', float('nan')):.2f} % | {r['auto_seconds']:.0f} s | "
             f"{other['seconds']:.0f} s |"

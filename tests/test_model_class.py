@@ -11,7 +11,9 @@ Two seeded 10-s records of machines whose class is known:
   bristles around a Stribeck curve); static 5.2e-3 rad, LuGre 1.3e-3, t = +5.3 → LuGre.
 
 Both models start from the pre-fit of the first 70 % and run one filter each (the run's default
-ensemble gives the same choices: t = −4.1 and +5.2).
+ensemble gives the same choices: t = −4.1 and +5.2). The same rig read through an encoder 8×
+coarser than its own: the windows still prefer LuGre (t = +4.3), but its bristles travel less
+than a count through a reversal, so the static model is kept.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from torchfric.app.commands.check import check_run
 from torchfric.app.commands.init import write_starter
 from torchfric.app.config import Config
 from torchfric.app.run import train
-from torchfric.app.run.autosize import choose_dynamic
+from torchfric.app.run.autosize import choose_dynamic, dynamic_lines
 from torchfric.app.run.outcome import summary_lines
 from torchfric.data.experiment import Experiment, make_experiment
 from torchfric.data.readers import save_csv
@@ -107,6 +109,50 @@ def test_auto_keeps_lugre_on_lugre_data(lugre_record: Experiment) -> None:
     assert d["criterion"] == "windowed_prediction" and d["t_min"] == 2.0
     assert [row["dynamic"] for row in d["table"]] == ["none", "lugre"]
     assert [row["chosen"] for row in d["table"]] == [False, True]
+    # the rig's bristles travel 2 Fs/σ0 = 2 counts through a reversal: seen by its encoder
+    assert d["position_step"] == pytest.approx(RigParameters().quantum, rel=1e-9)
+    assert 1.0 < d["bristle_travel"] / d["position_step"] < 3.0
+
+
+def test_bristles_finer_than_the_encoder_leave_the_static_model(lugre_record: Experiment) -> None:
+    """The same LuGre rig read by an encoder 8× coarser (1.6e-3 rad a count): its bristles
+    travel 0.25 of a count through a reversal, so the record cannot tell σ0 from σ0 → ∞ and the
+    static model is kept, whatever the windows say."""
+    coarse_q = torch.round(lugre_record.q / 1.6e-3) * 1.6e-3
+    coarse = make_experiment(lugre_record.t, lugre_record.u, coarse_q, name="coarse")
+    coarse = coarse.with_velocity()
+    static, lugre = _starts(coarse)
+    d = compare_dynamics(static, lugre, [coarse], EKFTuning()).to_dict()
+    assert d["position_step"] == pytest.approx(1.6e-3, rel=1e-9)
+    assert d["bristle_travel"] < d["position_step"]
+    assert d["chosen"] == "none"
+    summary = " ".join(dynamic_lines(d))
+    assert "position steps" in summary and "cannot tell σ0 from ∞ (static)" in summary
+
+
+def test_the_bristle_travel_is_the_swing_of_the_steady_deflection() -> None:
+    """`bristle_travel` = z(+) − z(−) of ``ż = v − σ0 |v| z / g(v)`` integrated to rest at a
+    held speed below the stick velocity, one way and the other (here 2 g(0)/σ0 = 3e-4)."""
+    from torchfric.models.lugre import bristle_field, bristle_travel, sliding_level
+
+    model = ArmModel(OddTanhFriction(2, w1=[0.5, 5.0], w2=[0.1, 0.15]), inertia=0.03,
+                     viscous=0.01, c_m=16.0, dynamic="lugre", sigma0=1000.0, sigma1=10.0,
+                     stick_velocity=0.02)  # fmt: skip
+    fric, arm = model.split(model.get_theta())
+    ends = []
+    for v in (0.01, -0.01):
+        x = torch.tensor([0.0, v, 0.0], dtype=torch.float64)
+        g = sliding_level(model.friction, x[1:2], fric, arm["lugre_vstick"])[0]
+        h = 0.5 * g / (arm["lugre_sigma0"] * abs(v))  # explicit Euler on z alone, h·rate = ½
+        for _ in range(200):  # the error halves each step
+            zdot = bristle_field(x, torch.tensor(0.0), g, arm["lugre_sigma0"],
+                                 arm["lugre_sigma1"], arm["inertia"])[2]  # fmt: skip
+            x = torch.stack([x[0], x[1], x[2] + h * zdot])
+        ends.append(float(x[2]))
+    travel = bristle_travel(model.friction, fric, arm)
+    assert ends[0] - ends[1] == pytest.approx(travel, rel=1e-9)
+    assert travel == pytest.approx(2 * float(model.black_box(torch.tensor([0.02]), fric, arm)[0])
+                                   / 1000.0, rel=1e-12)  # fmt: skip
 
 
 def test_the_held_out_end_never_reaches_the_identification(static_record: Experiment) -> None:

@@ -3,14 +3,15 @@ checks, and the synthetic rig (`torchfric.data.rig`), the embedded default data 
 
 Modules: `experiment` (the record and its validation), `readers` (load_experiment, save_csv;
 `guards` checks a file before it is read), `velocity` (derivatives of the position), `checks`
-(data_warnings), `convert` (array conversion shared by them), and the rig: `rig` (the named
-experiments and their files), `rig_model` (parameters and simulation), `excitation` (inputs).
+(data_warnings, position_step), `convert` (array conversion shared by them), and the rig: `rig`
+(the named experiments and their files), `rig_model` (parameters and simulation),
+`excitation` (inputs).
 
 Everything here depends only on numpy/torch and torchfric's leaf modules (errors, files,
 resources); the estimators and the app layer import from here, never the other way.
 """
 
-from .checks import data_warnings
+from .checks import data_warnings, position_step
 from .experiment import Experiment, make_experiment, validate_experiment
 from .readers import load_experiment, load_segments, save_csv
 from .velocity import (
@@ -31,6 +32,7 @@ __all__ = [
     "load_experiment",
     "load_segments",
     "make_experiment",
+    "position_step",
     "reconstruct_velocity",
     "save_csv",
     "validate_experiment",

@@ -2,6 +2,7 @@
 
 `data_warnings` flags an input that was clipped or saturated and a time column that looks like
 milliseconds in a seconds column. It only reads the record; the app layer prints the warnings.
+`position_step` is the records' resolution in position (an encoder's count).
 """
 
 from __future__ import annotations
@@ -9,12 +10,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import torch
 
 from ..errors import TorchfricError
 from .experiment import Experiment
 from .velocity import DEFAULT_CUTOFF_HZ
 
-__all__ = ["data_warnings"]
+__all__ = ["data_warnings", "position_step"]
 
 # Saturation: u at its exact minimum or maximum in more than this fraction of the samples ...
 _SATURATION_FRACTION = 0.01
@@ -139,3 +141,12 @@ def data_warnings(
     if unit is not None:
         out.append(unit)
     return out
+
+
+def position_step(records: list[Experiment]) -> float:
+    """The records' position step Δq: the 1st percentile of the nonzero |q[k+1] − q[k]| (one
+    encoder count for a quantised record, a fraction of the noise for an analogue one); NaN
+    when q never moves."""
+    steps = torch.cat([(e.q[1:] - e.q[:-1]).abs().to(torch.float64) for e in records])
+    steps = steps[steps > 0]
+    return float(torch.quantile(steps[:1_000_000], 0.01)) if steps.numel() else math.nan

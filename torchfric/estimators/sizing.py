@@ -34,7 +34,11 @@ and not by BIC: on a static Stribeck axis the one-step likelihood of the LuGre f
 static filter's by more than its ln N penalty (the bristle state's extra freedom, not a better
 model), so each class is identified on the first 70 % of the records (by `compare_sizes`, the
 same ensemble and passes) and scored by how well it predicts the held-out rest in 0.05-s
-open-loop windows from its own filter (`torchfric.estimators.selection.window_errors`).
+open-loop windows from its own filter (`torchfric.estimators.selection.window_errors`). Those
+windows also reward a model that sticks, which a static curve through zero cannot; so LuGre is
+kept only when its bristles are seen as well: their travel through a reversal, ``2 g(0)/σ0``,
+must span the records' position step (`torchfric.models.lugre.bristle_travel`). Below it the
+record cannot tell σ0 from σ0 → ∞, the static model that sticks.
 
 Why this size: one concept, the model's structure from the identification data, and one
 machinery for it (every candidate identified by the same batched ensemble, `compare_sizes`,
@@ -53,9 +57,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..data import Experiment
+from ..data import Experiment, position_step
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
+from ..models.lugre import bristle_travel
 from .ekf import FilterFailure
 from .ensemble import _filter_members, make_masked_step, member_grid
 from .observers import Callback
@@ -359,6 +364,8 @@ class DynamicsResult:
     window_seconds: float
     holdout: float
     seconds: float
+    travel: float  # the dynamic model's bristle travel through a reversal, 2 g(0)/σ0
+    step: float  # the records' position step (`position_step`)
     thetas: dict[str, Tensor] = dataclasses.field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -378,6 +385,8 @@ class DynamicsResult:
             "window_seconds": self.window_seconds,
             "holdout": self.holdout,
             "seconds": self.seconds,
+            "bristle_travel": self.travel,
+            "position_step": self.step,
             "table": table,
         }
 
@@ -406,11 +415,13 @@ def compare_dynamics(
     made from those heads alone); the rest is held out. There each model's filter, θ fixed,
     starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
     mean squared position errors are compared pair by pair. The dynamic model is kept only when
-    its windows predict better by more than `T_MIN` standard errors of the mean difference;
-    otherwise (a tie, or every dynamic filter diverging) the static model, the simpler one, is.
-    What the windows see is stiction as much as bristle dynamics: a static curve through zero
-    cannot stick, so on machines with sharp stiction LuGre often predicts better whatever its
-    σ0 (docs/results.md, "Static, LuGre or auto").
+    its windows predict better by more than `T_MIN` standard errors of the mean difference and
+    its bristles travel at least one position step through a reversal (`bristle_travel`
+    against `position_step`); otherwise (a tie, bristles the records cannot see, or every
+    dynamic filter diverging) the static model, the simpler one, is. The windows see stiction
+    as much as bristle dynamics: a static curve through zero cannot stick, so on machines with
+    sharp stiction LuGre predicts better whatever its σ0, and a σ0 too stiff for the encoder to
+    see is the static limit σ0 → ∞ (docs/results.md, "Static, LuGre or auto").
 
     Raises:
         TorchfricError: no record is long enough to hold a window out, or the static model's
@@ -446,10 +457,12 @@ def compare_dynamics(
     se = float(d.std() / math.sqrt(n)) if n > 1 and bool(torch.isfinite(d).all()) else math.nan
     t = float(d.mean()) / se if se > 0 else (math.inf if float(d.mean()) > 0 else -math.inf)
     gain = 1.0 - float(b.mean() / a.mean())
-    chosen = b_key if t > T_MIN else a_key
+    travel = bristle_travel(dynamic.friction, *dynamic.split(thetas[b_key]))
+    step = position_step(exps)
+    chosen = b_key if t > T_MIN and not travel < step else a_key  # NaN step: nothing to see
     rmse = {k: float(v.mean().sqrt()) for k, v in mse.items()}
     return DynamicsResult(scores, rmse, gain, t, chosen, n, window_seconds, holdout,
-                          time.perf_counter() - t0, thetas)  # fmt: skip
+                          time.perf_counter() - t0, travel, step, thetas)  # fmt: skip
 
 
 def _identify_and_predict(

@@ -42,6 +42,7 @@ __all__ = [
     "LUGRE_NAMES",
     "bristle_field",
     "bristle_solve",
+    "bristle_travel",
     "positive_level",
     "sliding_level",
     "sliding_curve",
@@ -79,6 +80,17 @@ def sliding_curve(
     """The dynamic model's steady-state friction without its white-box terms,
     ``sign(v) g(v)``: odd and zero at zero; ``C(v)`` where ``|v| >= v_s`` and C has v's sign."""
     return torch.sign(v) * sliding_level(friction, v, fric, v_stick)
+
+
+def bristle_travel(friction: Friction, fric: dict[str, Tensor], arm: dict[str, Tensor]) -> float:
+    """The bristles' travel through a velocity reversal, ``2 g(0)/σ0`` [position]: from the
+    deflection that holds the static friction g(0) one way to the one that holds it the other.
+    It is the pre-sliding motion a record must resolve for σ0 to be seen at all: a model whose
+    travel is below the encoder's step moves through a reversal as the limit σ0 → ∞ does, which
+    is a static model that sticks (`torchfric.estimators.sizing.compare_dynamics`)."""
+    zero = torch.zeros(1, dtype=arm["lugre_sigma0"].dtype)
+    level = sliding_level(friction, zero, fric, arm["lugre_vstick"])[0]
+    return float(2.0 * level / arm["lugre_sigma0"])
 
 
 # The functions below are TorchScript-compatible (tensors and optional tensors only): the

@@ -245,9 +245,12 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
         f"mean squared error was {_num(100 * abs(gain), '.1f')} % "
         f"{'lower' if gain >= 0 else 'higher'}, "
         f"{_num(dyn['t'], '.1f')} standard errors of the paired difference; LuGre is kept only "
-        f"above {dyn['t_min']:g} (a tie keeps the simpler static model). The one-step BIC is "
-        "shown but not used: the bristle state's extra freedom raises the filter's likelihood on "
-        "static machines too.</p>"
+        f"above {dyn['t_min']:g} (a tie keeps the simpler static model), and only if its "
+        f"bristles travel at least one position step through a reversal: 2 g(0)/σ0 = "
+        f"{_num(dyn['bristle_travel'], '.3g')} against {_num(dyn['position_step'], '.3g')} (a "
+        "travel below the encoder's step is the limit σ0 → ∞, a static model that sticks). "
+        "The one-step BIC is shown but not used: the bristle state's extra freedom raises the "
+        "filter's likelihood on static machines too.</p>"
     )
     return f"<h2>Friction class</h2><table>{head}{''.join(rows)}</table>{note}"
 

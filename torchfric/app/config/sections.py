@@ -227,7 +227,9 @@ class ModelConfig(TableSection):
             "auto" (what ``init`` writes): both are identified on the first 70 % of every
             identification record and each predicts the last 30 % in 0.05-s open-loop windows
             from its own filter; "lugre" is kept only when its windows' mean squared position
-            error is lower by more than 2 standard errors of the paired difference, else the
+            error is lower by more than 2 standard errors of the paired difference and its
+            bristles travel at least one position step through a reversal (2 g(0)/σ0; a
+            stiffer σ0 is, for this record, σ0 → ∞: a static model that sticks), else the
             static model (`torchfric.app.run.autosize`; the comparison is in metrics.json's
             ``dynamics``, the summary and report.html). The validation and test records are
             not read. A run then trains the chosen class on all the data (about 2.4× the time
@@ -236,7 +238,7 @@ class ModelConfig(TableSection):
             the data: the pre-sliding range starts at one position step (encoder count) of the
             identification records, ``σ0 = |F(v_s)| / Δq`` with F the starting model's static
             friction at the stick velocity and Δq the records' smallest position step
-            (`torchfric.app.run.inputs.position_step`), so the start scales with the data's
+            (`torchfric.data.position_step`), so the start scales with the data's
             units as the machine does.
         sigma1: initial bristle damping σ1 [torque per unit of q̇]; ``None`` = critically damped
             from σ0 and the starting inertia (the pre-fit's, with ``init = "prefit"``),

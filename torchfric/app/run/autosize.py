@@ -24,7 +24,9 @@ and the LuGre model of the config the way a run builds its start (`config_model`
 `torchfric.estimators.sizing.compare_dynamics`: both are identified there with the run's
 tuning and ensemble, and each predicts the held-out last 30 % in open-loop windows of 0.05 s
 started from its own filter. LuGre is kept only when its windows predict the position better
-by more than two standard errors; a tie keeps the static model. The run then trains the chosen
+by more than two standard errors and its bristles travel at least one position step through a
+reversal (``2 g(0)/σ0``; stiffer bristles are, for this record, the limit σ0 → ∞: a static
+model that sticks); otherwise the static model is kept. The run then trains the chosen
 class on the whole records like any other run. The comparison goes into ``metrics.json`` (key
 ``dynamics``), ``report.html`` and the summary (`dynamic_lines`).
 
@@ -185,7 +187,8 @@ def choose_dynamic(
     say(
         f'  model.dynamic = "auto": static and LuGre friction identified on the first '
         f"{1 - HOLDOUT:.0%} of each record, each predicting the last {HOLDOUT:.0%} in "
-        f"{WINDOW_SECONDS:g}-s open-loop windows; LuGre is kept if it predicts better by > 2 σ"
+        f"{WINDOW_SECONDS:g}-s open-loop windows; LuGre is kept if it predicts better by > 2 σ "
+        "and its bristles travel a position step"
     )
     result = compare_dynamics(
         starts["none"], starts["lugre"], train, est.ekf_tuning(), spec, device=device
@@ -221,4 +224,11 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
         f"  LuGre's windows: mean squared error {how} than static's, {t_text} standard errors "
         f"of the difference (LuGre is kept above {dynamics['t_min']:g})"
     )
+    travel, step = dynamics.get("bristle_travel"), dynamics.get("position_step")
+    if travel is not None and step is not None:
+        seen = "" if not travel < step else ": the record cannot tell σ0 from ∞ (static)"
+        lines.append(
+            f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
+            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1){seen}"
+        )
     return lines

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from ...data import Experiment, data_warnings, load_segments, make_experiment
+from ...data import Experiment, data_warnings, load_segments, make_experiment, position_step
 from ...data.velocity import settling_samples
 from ...errors import MissingColumn, TorchfricError
 from ...estimators.observers import Callback
@@ -243,15 +243,6 @@ def _bristles(m: Any, v_scale: float) -> dict[str, Any]:
     sigma1 = m.sigma1 if m.sigma1 is not None else 2.0 * math.sqrt(sigma0 * m.inertia)
     v_stick = m.stick_velocity if m.stick_velocity is not None else 0.01 * v_scale
     return {"dynamic": m.dynamic, "sigma0": sigma0, "sigma1": sigma1, "stick_velocity": v_stick}
-
-
-def position_step(train: list[Experiment]) -> float:
-    """The records' position step Δq: the 1st percentile of the nonzero |q[k+1] − q[k]| (one
-    encoder count for a quantised record, a fraction of the noise for an analogue one); NaN
-    when q never moves."""
-    steps = torch.cat([(e.q[1:] - e.q[:-1]).abs().to(torch.float64) for e in train])
-    steps = steps[steps > 0]
-    return float(torch.quantile(steps[:1_000_000], 0.01)) if steps.numel() else math.nan
 
 
 def _from_data(m: Any, model: ArmModel, train: list[Experiment]) -> ArmModel:
