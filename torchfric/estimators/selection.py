@@ -33,6 +33,12 @@ __all__ = [
     "window_errors",
 ]
 
+# Windows simulated in one batch by `window_errors`, always this many (the last batch repeats its
+# last window): one shape, so one generated simulation step serves every record (all 1800
+# windows of a 5-minute record's end at once were a 28 s compile, past the generated code's
+# size for LuGre, so an Inductor scan compiled anew in every process, and 280 MB kept).
+WINDOW_BATCH = 64
+
 
 @torch.no_grad()
 def simulate_members(
@@ -139,6 +145,7 @@ def select_by_fit(
 
 
 @torch.no_grad()
+@torch.no_grad()
 def window_errors(
     model: ArmModel,
     theta: Tensor,
@@ -190,6 +197,12 @@ def window_errors(
         x0.append(state.x[:s])
     idx = torch.tensor(firsts)[None, :] + torch.arange(window + 1)[:, None]  # (window+1, W)
     t = exp.t.to(f64)[: window + 1] - exp.t[0]
-    sim = simulate(model, t, u[idx], torch.stack(x0), theta=theta.to(f64), engine="compiled")
-    err = sim[1:, :, 0] - exp.q.to(f64)[idx[1:]]
-    return (err * err).mean(dim=0)
+    q, starts = exp.q.to(f64), torch.stack(x0)
+    out = []
+    for b in range(0, len(firsts), WINDOW_BATCH):  # each window is its own simulation
+        take = torch.arange(b, b + WINDOW_BATCH).clamp(max=len(firsts) - 1)  # last: repeated
+        cols = idx[:, take]
+        sim = simulate(model, t, u[cols], starts[take], theta=theta.to(f64), engine="compiled")
+        err = sim[1:, :, 0] - q[cols[1:]]
+        out.append((err * err).mean(dim=0)[: len(firsts) - b])
+    return torch.cat(out)
