@@ -145,7 +145,6 @@ def select_by_fit(
 
 
 @torch.no_grad()
-@torch.no_grad()
 def window_errors(
     model: ArmModel,
     theta: Tensor,
