@@ -130,6 +130,22 @@ def test_bristles_finer_than_the_encoder_leave_the_static_model(lugre_record: Ex
     assert "position steps" in summary and "cannot tell σ0 from ∞ (static)" in summary
 
 
+def test_a_close_call_with_visible_bristles_suggests_trying_lugre() -> None:
+    """The summary's hint where the windows prefer LuGre by less than 2 σ and its bristles
+    travel more than a step (the LuGre spindle of results.md: t +0.9, 3 steps); none where the
+    bristles are finer than a step or LuGre's windows are worse."""
+    row = {"dynamic": "none", "parameters": 8, "rmse_q": 1e-3, "bic": -1.0, "chosen": True}
+    base = {"chosen": "none", "windows": 179, "window_seconds": 0.05, "holdout": 0.3,
+            "seconds": 1.0, "t_min": 2.0, "table": [row], "position_step": 1e-3}  # fmt: skip
+
+    def hint(**kw: float) -> bool:
+        return any('model.dynamic = "lugre"' in line for line in dynamic_lines(base | kw))
+
+    assert hint(t=0.9, gain=0.033, bristle_travel=3e-3)
+    assert not hint(t=0.9, gain=0.033, bristle_travel=0.5e-3)  # finer than the encoder
+    assert not hint(t=-2.7, gain=-1.07, bristle_travel=4.7e-3)  # LuGre predicted worse
+
+
 def test_the_bristle_travel_is_the_swing_of_the_steady_deflection() -> None:
     """`bristle_travel` = z(+) − z(−) of ``ż = v − σ0 |v| z / g(v)`` integrated to rest at a
     held speed below the stick velocity, one way and the other (here 2 g(0)/σ0 = 3e-4)."""

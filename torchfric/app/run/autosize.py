@@ -231,4 +231,10 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
             f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
             f"{travel / step:.2g} position steps of {step:.3g} (kept from 1){seen}"
         )
+        if dynamics["chosen"] == "none" and not travel < step and gain > 0 and math.isfinite(t):
+            lines.append(  # the windows' blind spot (docs/results.md: a LuGre spindle)
+                "  LuGre predicted better, though not by 2 σ, with bristles the encoder sees: "
+                'if the machine may be dynamic, train once with model.dynamic = "lugre" and '
+                "compare the two on validation data"
+            )
     return lines
