@@ -129,8 +129,8 @@ def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -
     if m.dynamic == "auto":
         what += (
             f", friction class auto (static and LuGre identified on the first {1 - HOLDOUT:.0%} "
-            f"of the records, the better predictor of the last {HOLDOUT:.0%} kept; LuGre shown "
-            "here)"
+            f"of the records, LuGre kept if it predicts the last {HOLDOUT:.0%} better and its "
+            "bristles move the encoder; LuGre shown here)"
         )
     if base.state_size != 2:
         # the values the run starts from (a checkpoint's, when model.init names one)
