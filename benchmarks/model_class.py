@@ -15,8 +15,10 @@ run, bit for bit (`tests/test_model_class.py`), so the two runs give both classe
 Machines: ``rig`` (the synthetic LuGre rig, `experiments/configs/arm_defaults.toml`, validated on
 ``rig:validation``), ``stribeck`` (`STRIBECK_AXIS`, static friction), ``lugre`` (`LUGRE_AXIS`,
 LuGre bristles with a pre-sliding range of 0.4 encoder counts), ``linear`` (`LINEAR_AXIS`,
-static, an EMPS-like linear axis) and ``emps`` (the measured EMPS records,
-`experiments/configs/emps_defaults.toml`; scored by the benchmark protocol on the test file).
+static, an EMPS-like linear axis), ``emps`` (the measured EMPS records,
+`experiments/configs/emps_defaults.toml`; scored by the benchmark protocol on the test file),
+and, not in the default list, two machines the rule was not tuned on: ``spindle`` (LuGre, bristles
+travelling 6 counts of a 4096-count encoder) and ``carriage`` (static, sticking hard).
 Columns per class: validation FIT on q (EMPS: test RMSE in mm), inertia error, steady-state
 friction curve RMS error in % of the true curve's peak (over 5–95 % of the data's speeds, the
 jump at zero left out), and the run's wall time.
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -52,7 +55,18 @@ from torchfric.estimators.metrics import friction_curve_error
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "torchfric"]
-AXES = {"stribeck": STRIBECK_AXIS, "lugre": LUGRE_AXIS, "linear": LINEAR_AXIS}
+_COUNT = 2 * math.pi / 4096  # the spindle's 4096-count encoder
+# Two machines the rule was not tuned on (a user's walk, docs/results.md): a LuGre spindle whose
+# bristles travel 6 counts through a reversal, and a static carriage that sticks hard (Fs = 2 Fc).
+SPINDLE_AXIS = AxisParameters(inertia=0.05, c_m=2.0, viscous=0.01, coulomb=0.3, static=0.45,
+                              stribeck_velocity=0.5, friction="lugre", sigma0=0.45 / (3 * _COUNT),
+                              sigma1=1.4 * math.sqrt(0.45 / (3 * _COUNT) * 0.05), quantum=_COUNT,
+                              max_speed=20.0, substeps=40)  # fmt: skip
+CARRIAGE_AXIS = AxisParameters(inertia=8.0, c_m=20.0, viscous=30.0, coulomb=6.0, static=12.0,
+                               stribeck_velocity=0.005, quantum=1e-6, max_speed=0.3,
+                               max_input=3.0)  # fmt: skip
+AXES = {"stribeck": STRIBECK_AXIS, "lugre": LUGRE_AXIS, "linear": LINEAR_AXIS,
+        "spindle": SPINDLE_AXIS, "carriage": CARRIAGE_AXIS}  # fmt: skip
 CONFIGS = {
     "rig": ROOT / "experiments" / "configs" / "arm_defaults.toml",
     "emps": ROOT / "experiments" / "configs" / "emps_defaults.toml",
@@ -180,7 +194,7 @@ def print_table(rows: list[dict]) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--machines", nargs="+", default=["rig", "stribeck", "lugre", "linear", "emps"],
-                   choices=["rig", "stribeck", "lugre", "linear", "emps"])  # fmt: skip
+                   choices=["rig", "stribeck", "lugre", "linear", "emps", "spindle", "carriage"])  # fmt: skip
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
