@@ -173,6 +173,7 @@ def test_report_escapes_the_users_text_and_says_when_nothing_validates() -> None
     assert "kept epoch" in page
     for name, value in arm.physical_parameters().items():
         assert f"<td>{name}</td><td class='num'>{value:.6g} ± –</td>" in page
+    assert "–: not known" in page and "filter's own belief" not in page
 
 
 # -- a real run's report -----------------------------------------------------------------------
@@ -238,3 +239,6 @@ def test_a_runs_report_is_self_contained_and_shows_the_runs_numbers(
     assert cells[:2] == [f"{fits['fit_q']:.2f}", f"{fits['fit_qdot']:.2f}"]
     assert float(cells[0]) == pytest.approx(fits["fit_q"], abs=0.005)
     assert "with its ±2σ band" in body and "converged" in body
+    # the σ are said to be what they are: this EKF run's sandwich, not the filter's P_θθ
+    assert metrics["covariance"]["method"] == "sandwich"
+    assert "sandwich covariance" in body and "filter's own belief" not in body

@@ -143,18 +143,28 @@ def _parameters(metrics: Mapping[str, Any]) -> str:
     head = "<tr><th>parameter</th><th>value ± σ</th><th>σ / |value|</th></tr>"
     known = any(std is not None for _, _, std in table)
     unknown = any(std is None for _, _, std in table)
+    method = (metrics.get("covariance") or {}).get("method")
     note = (
         '<p class="note">'
-        + (
-            "σ is the filter's own belief (from its parameter covariance P<sub>θθ</sub>); "
-            "after several passes over the same data it is narrower than the real error. "
-            if known
-            else ""
-        )
-        + ("–: not known (output-error training estimates no covariance)." if unknown else "")
+        + (_SIGMA_NOTES.get(method, _SIGMA_NOTES[None]) if known else "")
+        + ("–: not known (no covariance was computed for this run)." if unknown else "")
         + "</p>"
     )
     return f"<table>{head}{''.join(rows)}</table>{note}"
+
+
+# Where the σ above come from, by metrics.json's ``covariance.method`` (docs/estimators.md,
+# "Uncertainty"); None: a run that kept no covariance of its own (the filter's P_θθ).
+_SIGMA_NOTES: dict[str | None, str] = {
+    "sandwich": "σ: the sandwich covariance I<sup>−1</sup>JI<sup>−1</sup> of the one-step "
+    "prediction-error likelihood at the reported θ, over all identification records, plus the "
+    "distance to the run's other estimate where the kept pass and the likelihood's optimum "
+    "differ (docs/estimators.md, Uncertainty). ",
+    "sandwich_simulation": "σ: the sandwich covariance of the open-loop simulation error at the "
+    "reported θ (output error; docs/estimators.md, Uncertainty). ",
+    None: "σ is the filter's own belief (from its parameter covariance P<sub>θθ</sub>); after "
+    "several passes over the same data it is narrower than the real error. ",
+}
 
 
 def _fits(metrics: Mapping[str, Any]) -> str:

@@ -97,7 +97,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "samples": exp.n,
         **score.to_dict(),
         "unit": {"q": unit, "qdot": f"{unit}/s"},  # of rms_q and rms_qdot (SI)
-        # ± σ from the checkpoint's P_θθ (an EKF's kept pass); σ is null after output error
+        # ± σ from the checkpoint's P_θθ: the run's covariance (docs/estimators.md, Uncertainty)
         "parameters": parameter_table(model, state.get("P_theta")),
     }
     if args.json:
