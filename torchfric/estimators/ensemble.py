@@ -26,6 +26,7 @@ together; the pass ledger and the selection are already apart (`passes`, `select
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Sequence
@@ -267,7 +268,7 @@ class EnsembleResult:
     members: list[MemberSummary]
     selected_by: str  # "validation_and_train_fit" | "train_fit" | "loglik" (none simulates)
     seconds: float
-    filter_steps: int  # member-samples filtered (K × samples × passes run)
+    filter_steps: int  # member-samples filtered (each pass: its running members × samples)
 
     def summary(self) -> dict[str, Any]:
         """Counts and spread of the members' results (for metrics.json and reports)."""
@@ -391,18 +392,18 @@ def _member_starts(
 
 
 def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
-    """Pass `p` of every running member over every experiment, as one batch.
-
-    No per-sample host synchronisation: health flags are folded into masks on the device and
-    read once per experiment. A member that fails keeps its θ and ``P_θθ`` from before that
-    experiment and gets the reason (pass, experiment, sample) in `PassSums.failures`.
-    """
-    f64, K = torch.float64, ledger.theta.shape[0]
-    theta, P_theta = ledger.theta, ledger.P_theta
-    good = ledger.running()
+    """Pass `p` of the running members over every experiment, as one batch of those only (each
+    member's arithmetic is its own: the batch's size changes no bit; `PassSums.spread` gives the
+    others' rows back). Health flags are folded into masks on the device and read once per
+    experiment; a member that fails keeps its θ and ``P_θθ`` from before that experiment and
+    gets the reason (pass, experiment, sample) in `PassSums.failures`."""
+    run = torch.nonzero(ledger.running()).flatten()
+    f = dataclasses.replace(f, Q=f.Q[run], R=f.R[run])
+    theta, P_theta = ledger.theta[run], ledger.P_theta[run]
+    f64, K = torch.float64, run.numel()
+    good = torch.ones(K, dtype=torch.bool)
     fail_at = torch.full((K,), -1, dtype=torch.long)
-    sums = [torch.zeros(K, f.H.shape[0], dtype=f64), torch.zeros(K, dtype=f64)]
-    sums.append(torch.zeros(K, dtype=f64))  # Σ e², Σ NIS, log-likelihood
+    sums = [torch.zeros(K, f.H.shape[0], dtype=f64), *torch.zeros(2, K, dtype=f64)]  # Σe², NIS, ℓ
     samples, failures = 0, [""] * K
     for exp, u, y in f.data:
         x, P = initial_belief(exp, theta, P_theta, f.P0_xx)
@@ -410,16 +411,16 @@ def _filter_members(p: int, ledger: PassLedger, f: Filtering) -> PassSums:
         carry = _first_sample((x, P, good, fail_at, *sums), y[0], f)
         x, P, good, fail_at, *sums = _filter_rest(carry, exp, u, y, p, samples, f)
         for i in torch.nonzero(was_good & ~good).flatten().tolist():
-            failures[i] = (
-                f"diverged in pass {p}, experiment {exp.name!r}, sample {int(fail_at[i])}: the "
-                "belief became non-finite, non-PSD or θ left the box "
-                f"|θ| <= {f.theta_bound:g}"
-            )
+            failures[i] = (f"diverged in pass {p}, experiment {exp.name!r}, sample "
+                           f"{int(fail_at[i])}: the belief became non-finite, non-PSD or θ left "
+                           f"the box |θ| <= {f.theta_bound:g}")  # fmt: skip
         samples += exp.n
         f.callback.on_progress(p, samples, f.total)
         theta = torch.where(good[:, None], x[:, f.states :], theta)
         P_theta = torch.where(good[:, None, None], P[:, f.states :, f.states :], P_theta)
-    return PassSums(theta, P_theta, P, *sums, samples, failures)
+    return PassSums(theta, P_theta, P, *sums, samples, failures).spread(
+        run, ledger.theta, ledger.P_theta
+    )
 
 
 def _filter_rest(

@@ -146,6 +146,24 @@ class PassSums:
     samples: int
     failures: list[str]  # per member: "" when healthy, else why it diverged
 
+    def spread(self, rows: Tensor, theta: Tensor, P_theta: Tensor) -> PassSums:
+        """These sums of the members `rows` of a batch whose θ and ``P_θθ`` are `theta`,
+        `P_theta` `(K, ...)`, as the whole batch's: the other members keep their θ and
+        ``P_θθ``, with zero sums and no failure."""
+        K = theta.shape[0]
+
+        def full(x: Tensor, base: Tensor | None = None) -> Tensor:
+            out = torch.zeros((K, *x.shape[1:]), dtype=x.dtype) if base is None else base.clone()
+            out[rows] = x
+            return out
+
+        failures = [""] * K
+        for j, i in enumerate(rows.tolist()):
+            failures[i] = self.failures[j]
+        return PassSums(full(self.theta, theta), full(self.P_theta, P_theta), full(self.P),
+                        full(self.sum_e2), full(self.sum_nis), full(self.loglik), self.samples,
+                        failures)  # fmt: skip
+
 
 def pass_record(
     model: ArmModel, index: int, sums: PassSums, i: int, rel: float, seconds: float
@@ -172,7 +190,7 @@ class PassLedger:
     """The pass bookkeeping of K members: θ `(K, k)` and ``P_θθ`` `(K, k, k)` now, and per member
     its status, divergence reason, `PassRecord` history and best pass (log-likelihood, θ,
     ``P_θθ``; the rollback target). ``next_pass`` is the 1-based pass to run next and
-    ``filter_steps`` counts member-samples filtered."""
+    ``filter_steps`` counts member-samples filtered (the running members of each pass)."""
 
     def __init__(self, model: ArmModel, tuning: EKFTuning, theta: Tensor, P_theta: Tensor) -> None:
         K = theta.shape[0]
@@ -266,6 +284,7 @@ class PassLedger:
         running member; members that had stopped stay at their best pass. Returns the new
         record of each member (None for members without one)."""
         theta_old, P_old = self.theta, self.P_theta
+        running = sum(status == RUNNING for status in self.status)
         theta, P_theta = sums.theta.clone(), sums.P_theta.clone()
         rel = (theta - theta_old).norm(dim=1) / theta_old.norm(dim=1).clamp_min(1e-12)
         records: list[PassRecord | None] = [None] * len(self.status)
@@ -280,7 +299,7 @@ class PassLedger:
                 self._keep_or_roll_back(i, records[i], theta, P_theta)
         self.theta, self.P_theta = theta, P_theta
         self.next_pass = index + 1
-        self.filter_steps += len(self.status) * sums.samples
+        self.filter_steps += running * sums.samples  # the members filtered in this pass
         return records
 
     def _keep_or_roll_back(
