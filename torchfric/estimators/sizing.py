@@ -60,7 +60,7 @@ from torch import Tensor
 from ..data import Experiment, position_step
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from ..models.lugre import bristle_travel
+from ..models.lugre import bristle_travel, bristles_seen
 from .ekf import FilterFailure
 from .ensemble import _filter_members, make_masked_step, member_grid
 from .observers import Callback
@@ -459,7 +459,7 @@ def compare_dynamics(
     gain = 1.0 - float(b.mean() / a.mean())
     travel = bristle_travel(dynamic.friction, *dynamic.split(thetas[b_key]))
     step = position_step(exps)
-    chosen = b_key if t > T_MIN and not travel < step else a_key  # NaN step: nothing to see
+    chosen = b_key if t > T_MIN and bristles_seen(travel, step) else a_key
     rmse = {k: float(v.mean().sqrt()) for k, v in mse.items()}
     return DynamicsResult(scores, rmse, gain, t, chosen, n, window_seconds, holdout,
                           time.perf_counter() - t0, travel, step, thetas)  # fmt: skip

@@ -43,6 +43,7 @@ __all__ = [
     "bristle_field",
     "bristle_solve",
     "bristle_travel",
+    "bristles_seen",
     "positive_level",
     "sliding_level",
     "sliding_curve",
@@ -91,6 +92,12 @@ def bristle_travel(friction: Friction, fric: dict[str, Tensor], arm: dict[str, T
     zero = torch.zeros(1, dtype=arm["lugre_sigma0"].dtype)
     level = sliding_level(friction, zero, fric, arm["lugre_vstick"])[0]
     return float(2.0 * level / arm["lugre_sigma0"])
+
+
+def bristles_seen(travel: float, step: float) -> bool:
+    """Whether a `bristle_travel` spans the records' position `step` (a NaN step, a position
+    that never moves, has no resolution to fall below)."""
+    return not travel < step
 
 
 # The functions below are TorchScript-compatible (tensors and optional tensors only): the

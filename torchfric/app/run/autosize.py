@@ -49,7 +49,7 @@ from ...estimators.sizing import (
     held_out_heads,
     nests,
 )
-from ...models.lugre import CLASS_NAMES
+from ...models.lugre import CLASS_NAMES, bristles_seen
 from ...resources import ekf_bytes, require_memory
 from ..config import AUTO_SIZES, Config
 from .inputs import check_resources, config_model, initial_model
@@ -226,12 +226,13 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
     )
     travel, step = dynamics.get("bristle_travel"), dynamics.get("position_step")
     if travel is not None and step is not None:
-        seen = "" if not travel < step else ": the record cannot tell σ0 from ∞ (static)"
+        seen = bristles_seen(travel, step)
+        why = "" if seen else ": the record cannot tell σ0 from ∞ (static)"
         lines.append(
             f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
-            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1){seen}"
+            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1){why}"
         )
-        if dynamics["chosen"] == "none" and not travel < step and gain > 0 and math.isfinite(t):
+        if dynamics["chosen"] == "none" and seen and gain > 0 and math.isfinite(t):
             lines.append(  # the windows' blind spot (docs/results.md: a LuGre spindle)
                 "  LuGre predicted better, though not by 2 σ, with bristles the encoder sees: "
                 'if the machine may be dynamic, train once with model.dynamic = "lugre" and '
