@@ -411,6 +411,40 @@ def test_identifiability_names_a_null_direction_of_the_information() -> None:
     assert identifiability(D @ D, torch.eye(4), names).ok
 
 
+def test_a_slope_pinned_at_its_floor_is_held_and_the_rest_keep_finite_sigma() -> None:
+    # A neuron whose input weight sits on its floor (W1 = min_slope: the data would take it
+    # lower) no longer moves with its stored r (slope sigmoid(r/lo) = 0). Inverted with the
+    # rest, its variance in θ was 1e283 on a 20-minute record and the curve's band ±5e53 N m.
+    # Held: its row and column are zero, and the others' covariance is the sandwich of the
+    # sub-problem without it (information and score covariance restricted to the free entries).
+    lo = 0.5
+    model = ArmModel(
+        OddTanhFriction(2, w1=[1.0, 20.0], w2=[0.05, 0.1], min_slope=lo),
+        inertia=0.03, viscous=0.01, c_m=C_M,
+    )  # fmt: skip
+    theta = model.get_theta()
+    theta[0] = -100.0 * lo  # r/lo = -100: W1[1] = lo (1 + 4e-44)
+    model.set_theta(theta)
+    assert model.friction.flat_bounded().tolist() == [True, True, False, False]
+    exp = _short_record(model, 20_000, seed=3)
+    pem = pem_covariance(model, [exp], _tuning(), model.get_theta())
+    assert pem.identifiability.held == ["W1[1]"] and not pem.identifiability.ok
+    assert any(m.startswith("W1[1] sits at its lower bound") for m in pem.identifiability.messages)
+    assert pem.identifiability.to_dict()["held_at_bound"] == ["W1[1]"]
+    assert not any("W1[1]" in names for names, _ in pem.identifiability.directions)
+    assert bool((pem.cov[0] == 0).all()) and bool((pem.cov[:, 0] == 0).all())
+    free = torch.tensor([False, True, True, True, True, True])
+    inv = torch.linalg.inv(pem.information[free][:, free])
+    expected = inv @ pem.score_cov[free][:, free] @ inv
+    torch.testing.assert_close(pem.cov[free][:, free], expected, rtol=1e-6, atol=0.0)
+    assert float(pem.newton[0]) == 0.0  # the polish's Newton step does not move it either
+    # The curve's band stays on the scale of the friction (≤ 0.15 N m here), not 1e50.
+    from torchfric.estimators.uncertainty import friction_band
+
+    _, std = friction_band(model, pem.cov, torch.linspace(-2.5, 2.5, 11))
+    assert bool(torch.isfinite(std).all()) and float(std.max()) < 0.01
+
+
 # =============================================================================================
 # Long-run score covariance
 # =============================================================================================
@@ -571,7 +605,10 @@ def test_damped_steps_ascend_and_shorten_towards_the_gradient() -> None:
         torch.tensor([1e6, 1.0, 1e-3, 10.0, 1e2], dtype=torch.float64).sqrt()
     )  # parameters in very different units, as θ's are
     grad = torch.randn(5, generator=gen, dtype=torch.float64)
-    steps = _damped_steps(SimpleNamespace(information=info, gradient=grad))
+    names = [f"p{i}" for i in range(5)]
+    cov = SimpleNamespace(information=info, gradient=grad, names=names,
+                          identifiability=SimpleNamespace(held=[]))  # fmt: skip
+    steps = _damped_steps(cov)
     assert all(float(grad @ s) > 0 for s in steps)
     scale = torch.diagonal(info).sqrt()  # lengths in the parameters' own units
     lengths = [float((s * scale).norm()) for s in steps]
@@ -579,6 +616,14 @@ def test_damped_steps_ascend_and_shorten_towards_the_gradient() -> None:
     newton = torch.linalg.solve(info, grad)
     away = [float((s - newton).norm() / newton.norm()) for s in steps]
     assert away == sorted(away) and away[0] < 0.1
+    # An entry held at its bound stays; the others take the steps of the problem without it.
+    cov.identifiability.held = ["p2"]
+    free = torch.tensor([True, True, False, True, True])
+    sub = info[free][:, free]
+    for lam, step in zip((1e-2, 1e-1, 1.0, 10.0, 100.0), _damped_steps(cov), strict=True):
+        assert float(step[2]) == 0.0
+        expected = torch.linalg.solve(sub + lam * torch.diag(torch.diagonal(sub)), grad[free])
+        torch.testing.assert_close(step[free], expected)
 
 
 def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -600,7 +645,8 @@ def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # typ
         grad = -info @ (theta - best)
         newton = torch.linalg.solve(info, grad)
         return SimpleNamespace(theta=theta, loglik=loglik(theta), gradient=grad, newton=newton,
-                               information=info, cov=torch.linalg.inv(info))  # fmt: skip
+                               information=info, cov=torch.linalg.inv(info), names=["a", "b"],
+                               identifiability=SimpleNamespace(held=[]))  # fmt: skip
 
     monkeypatch.setattr(covariance, "pem_covariance", lambda m, e, t, theta, **kw: at(theta))
     monkeypatch.setattr(covariance, "_loglik",

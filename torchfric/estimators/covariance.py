@@ -57,6 +57,7 @@ from .sandwich import (  # noqa: F401 - _bartlett, _inverse: re-exported for the
     PEMCovariance,
     _bartlett,
     _inverse,
+    at_bound,
     identifiability,
     long_run_covariance,
     score_sums,
@@ -313,9 +314,9 @@ def pem_covariance(
         )
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
-    inv = _inverse(info)
-    cov = inv @ J @ inv
-    cov = 0.5 * (cov + cov.T)
+    held = at_bound(model, theta)  # a neuron's slope pinned at its floor: held there
+    inv = _inverse(info, held)
+    cov = 0.5 * (inv @ J @ inv + (inv @ J @ inv).T)
     return PEMCovariance(
         theta=theta.clone(),
         cov=cov,
@@ -328,7 +329,7 @@ def pem_covariance(
         blocks=scores.shape[0],
         bandwidth=bandwidth,
         names=list(names),
-        identifiability=identifiability(info, cov, names),
+        identifiability=identifiability(info, cov, names, held),
         steps=h,
     )
 
@@ -342,7 +343,7 @@ def _sensitivities(run: Any, theta: Tensor, h: Tensor) -> list[Tensor]:
     De: list[Tensor] = []
     for j0 in range(0, k, _GROUP):
         cols = range(j0, min(k, j0 + _GROUP))
-        steps = torch.stack([h[j] * _unit(k, j) for j in cols])
+        steps = torch.diag(h)[list(cols)]
         parts = run(torch.cat([theta + steps, theta - steps]), variances=False)
         if not De:
             De = [torch.empty(e.shape[0], k, dtype=torch.float64) for e, _ in parts]
@@ -372,12 +373,6 @@ def _loglik(
         ll = sum(-0.5 * (e * e / S).sum(0) for e, S in parts)
         out.append(torch.where(torch.isfinite(ll), ll, -math.inf))
     return torch.cat(out)
-
-
-def _unit(k: int, j: int) -> Tensor:
-    out = torch.zeros(k, dtype=torch.float64)
-    out[j] = 1.0
-    return out
 
 
 NOISE_GRID_R = tuple(10.0**p for p in range(-8, 1))
@@ -433,12 +428,14 @@ def noise_model(
 
 def _damped_steps(cov: PEMCovariance) -> list[Tensor]:
     """Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` from `cov`'s point, λ = 0.01 … 100:
-    each raises ℓ when short enough, and diag I scales them to the parameters' own units."""
-    scale = torch.diagonal(cov.information).clamp_min(1e-300)
-    return [
-        torch.linalg.solve(cov.information + lam * torch.diag(scale), cov.gradient)
-        for lam in (1e-2, 1e-1, 1.0, 10.0, 100.0)
-    ]
+    each raises ℓ when short enough, and diag I scales them to the parameters' own units. The
+    entries held at their bound (`at_bound`) stay."""
+    free = torch.tensor([n not in cov.identifiability.held for n in cov.names])
+    info, steps = cov.information[free][:, free], torch.zeros(5, len(free), dtype=torch.float64)
+    scale = torch.diagonal(info).clamp_min(1e-300)
+    for i, lam in enumerate((1e-2, 1e-1, 1.0, 10.0, 100.0)):
+        steps[i, free] = torch.linalg.solve(info + lam * torch.diag(scale), cov.gradient[free])
+    return list(steps)
 
 
 def pem_refine(

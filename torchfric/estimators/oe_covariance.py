@@ -83,7 +83,14 @@ from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import simulate
-from .sandwich import BLOCKS, PEMCovariance, _inverse, identifiability, long_run_covariance
+from .sandwich import (
+    BLOCKS,
+    PEMCovariance,
+    _inverse,
+    at_bound,
+    identifiability,
+    long_run_covariance,
+)
 from .shooting import METHOD, ExperimentTensors, prepare, scales, solver_substeps
 
 __all__ = ["simulation_covariance", "BLOCKS"]
@@ -157,13 +164,14 @@ def simulation_covariance(
     scores, segment = _block_scores(resid, sens, W, block)
     gradient = scores.sum(0)
     J, lags = long_run_covariance(scores, segment)
-    inv = _inverse(information)
+    held = at_bound(model, theta)  # a neuron's slope pinned at its floor: held there
+    inv = _inverse(information, held)
     cov = 0.5 * (inv @ J @ inv + (inv @ J @ inv).T)
     # ℓ concentrated in σ̂² (channels of weight 0 do not count): −(n/2) Σ_c w_c (ln 2πσ̂_c² + 1)
     per_channel = torch.log(2.0 * math.pi * var.clamp_min(1e-300)) + 1.0
     loglik = -0.5 * n * float(torch.where(w > 0, w * per_channel, 0.0).sum())
     return PEMCovariance(theta.clone(), cov, information, J, gradient, inv @ gradient, loglik, n,
-                         scores.shape[0], lags, names, identifiability(information, cov, names),
+                         scores.shape[0], lags, names, identifiability(information, cov, names, held),
                          steps=h, method="sandwich_simulation")  # fmt: skip
 
 

@@ -10,11 +10,15 @@ the simulation-error (`oe_covariance`) forms.
   with ~30 blocks of 1000 samples the estimate was too noisy (±2σ coverage of a white-box
   model 85–90 % over 100 fits); with ~256 it was 96–98 %.
 - `_inverse`: ``I⁻¹`` on unit-diagonal scaling, directions below `CONDITION_LIMIT` of the
-  largest eigenvalue left out (a pseudo-inverse), reported by `identifiability` by name.
+  largest eigenvalue left out (a pseudo-inverse), reported by `identifiability` by name; the
+  entries `at_bound` (a neuron's slope pinned at its floor) held: the others' σ given them
+  (inverted with the rest, one got a variance of 1e283 and the band ±5e53 N m).
 - `viscous_share`: the tanh neurons that still rise over the data's upper speeds and so take
   part of b's slope (`ViscousShare`, joined to the report by the run's confidence stage): a
   bias the covariance cannot show (the fit is well determined; its b is not the viscous term
   alone).
+
+Why this size: one statistic, the sandwich, and the report read off it; both estimators use it.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ __all__ = [
     "VISCOUS_SHARE_LIMIT",
     "VISCOUS_SHARE_SIGMA",
     "ViscousShare",
+    "at_bound",
     "identifiability",
     "long_run_covariance",
     "score_sums",
@@ -55,6 +60,9 @@ VISCOUS_SHARE_LIMIT = 0.05
 viscous term b (`viscous_share`; with |s_j| above `VISCOUS_SHARE_SIGMA` σ_b too)."""
 VISCOUS_SHARE_SIGMA = 3.0
 """|s_j / σ_b| above which a neuron's share of b is reported (with `VISCOUS_SHARE_LIMIT`)."""
+BOUND_SLOPE = 1e-6
+"""A bounded entry of θ whose value moves less than this per unit of θ sits at its bound
+(`at_bound`)."""
 _W1 = re.compile(r"W1\[(\d+)\]")
 
 
@@ -194,17 +202,20 @@ class Identifiability:
     pairs: list[tuple[str, str, float]] = field(default_factory=list)
     directions: list[tuple[list[str], float]] = field(default_factory=list)
     shares: list[ViscousShare] = field(default_factory=list)
+    held: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
-        return not self.pairs and not self.directions and not self.shares
+        return not self.pairs and not self.directions and not self.shares and not self.held
 
     @property
     def groups(self) -> list[tuple[list[str], str]]:
         """The strongly correlated pairs joined into groups (connected components), with the
         largest |ρ| in each, then each near-null direction not already inside a group, then
-        each neuron that takes part of b: the names and how they were found."""
-        return self._collinear() + [(list(s.names), s.how) for s in self.shares]
+        each entry held at its bound, then each neuron that takes part of b: the names and how
+        they were found."""
+        held = [([n], "held at its lower bound") for n in self.held]
+        return self._collinear() + held + [(list(s.names), s.how) for s in self.shares]
 
     def _collinear(self) -> list[tuple[list[str], str]]:
         """`groups` of the covariance alone (the pairs and the near-null directions)."""
@@ -252,6 +263,12 @@ class Identifiability:
                 "off against each other, only their combination is determined; fix one, use a "
                 "smaller model, or excite the machine so that they act differently"
             )
+        out += [
+            f"{n} sits at its lower bound (the data would take it lower): it is held there, "
+            "without σ, and the other σ and the curve's band take it as fixed; a neuron that "
+            "wants a lower slope is taking the viscous term's role, see model.saturation"
+            for n in self.held
+        ]
         return out + [s.message for s in self.shares]
 
     def to_dict(self) -> dict[str, Any]:
@@ -264,15 +281,21 @@ class Identifiability:
             "share_limit": VISCOUS_SHARE_LIMIT,
             "share_sigma_limit": VISCOUS_SHARE_SIGMA,
             "viscous_shares": [s.to_dict() for s in self.shares],
+            "held_at_bound": list(self.held),
             "messages": self.messages,
         }
 
 
-def identifiability(information: Tensor, cov: Tensor, names: Sequence[str]) -> Identifiability:
-    """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`) and near-null
+def identifiability(
+    information: Tensor, cov: Tensor, names: Sequence[str], held: Tensor | None = None
+) -> Identifiability:
+    """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`), near-null
     directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
-    of the largest)."""
-    out = Identifiability()
+    of the largest) among the entries not `held` (bool `(k,)`, `at_bound`), and those held."""
+    free = _free(held, len(names))
+    out = Identifiability(held=[n for n, f in zip(names, free.tolist(), strict=True) if not f])
+    names = [n for n, f in zip(names, free.tolist(), strict=True) if f]
+    information, cov = information[free][:, free], cov[free][:, free]
     d = torch.diagonal(cov).clamp_min(0.0).sqrt()
     denom = d[:, None] * d[None, :]
     corr = torch.where(denom > 0, cov / torch.where(denom > 0, denom, 1.0), 0.0)
@@ -407,10 +430,35 @@ def _long_run(scores: Tensor, segment: Tensor, lags: int) -> Tensor:
     return 0.5 * (J + J.T)
 
 
-def _inverse(information: Tensor) -> Tensor:
+def at_bound(model: Any, theta: Tensor) -> Tensor:
+    """`(k,)` bool: the entries of θ stored above a lower bound (a tanh neuron's input weight
+    above `min_slope`) whose value moves less than `BOUND_SLOPE` per unit of θ: pinned at the
+    bound, they are held there (`_inverse`)."""
+    bounded = model.friction.flat_bounded()
+    mask = torch.zeros(theta.numel(), dtype=torch.bool)
+    mask[: bounded.numel()] = bounded
+    return mask & (model.physical_slope(theta.reshape(-1)) < BOUND_SLOPE)
+
+
+def _free(held: Tensor | None, k: int) -> Tensor:
+    return torch.ones(k, dtype=torch.bool) if held is None else ~held.to(torch.bool)
+
+
+def _inverse(information: Tensor, held: Tensor | None = None) -> Tensor:
     """``I⁻¹`` by a symmetric eigen-decomposition on unit-diagonal scaling; directions with a
     non-positive or negligible eigenvalue get no inverse (a pseudo-inverse): they are reported
-    by `identifiability`, not hidden behind a huge σ."""
+    by `identifiability`, not hidden behind a huge σ. The entries `held` (bool `(k,)`,
+    `at_bound`) are left out: their rows and columns are zero."""
+    free = _free(held, information.shape[0])
+    out = torch.zeros_like(information)
+    if bool(free.any()):
+        out[free.nonzero()[:, 0][:, None], free.nonzero()[:, 0][None, :]] = _pinv(
+            information[free][:, free]
+        )
+    return out
+
+
+def _pinv(information: Tensor) -> Tensor:
     d = torch.diagonal(information).abs().clamp_min(1e-300).sqrt()
     scaled = information / (d[:, None] * d[None, :])
     evals, evecs = torch.linalg.eigh(0.5 * (scaled + scaled.T))

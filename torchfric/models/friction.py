@@ -176,6 +176,11 @@ class Friction(nn.Module):
             i += size
         return torch.cat(out, -1)
 
+    def flat_bounded(self) -> Tensor:
+        """`(k,)` bool: the flat entries stored above a lower bound (`_bounded`)."""
+        return torch.cat([torch.full((size,), name in self._bounds) for name, size, _ in self._spec]
+                         or [torch.zeros(0, dtype=torch.bool)])  # fmt: skip
+
     def physical_parameters(self) -> dict[str, Tensor]:
         """The module's own parameters in physical units (differentiable)."""
         return self.split(self.raw_vector())
