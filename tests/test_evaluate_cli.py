@@ -60,10 +60,33 @@ def test_evaluate_reads_other_names_and_units_and_scores_as_the_run_did(
     for key in ("rms_q", "rms_qdot"):
         assert got[key] == pytest.approx(want[key], rel=1e-9, abs=0.0), key
 
+    method = json.loads(run["metrics"].read_text())["covariance"]["method"]
+    assert got["sigma"] == method == "sandwich"
+
     assert main(argv) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[2].split()[:3] == ["RMS", "[rad,", "rad/s]"]
     assert float(lines[2].split()[3]) == pytest.approx(want["rms_q"], rel=1e-5)
+    assert lines[-1].startswith("σ: the run's sandwich covariance of its one-step prediction")
+
+
+def test_evaluate_says_when_the_sigma_are_the_filters_own(
+    run: dict[str, pathlib.Path], tmp_path: pathlib.Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A checkpoint written before runs computed a covariance (the committed ones of 2026-11-25)
+    # holds the filter's P_θθ only: its σ are printed with what they are.
+    import torch
+
+    raw = torch.load(run["ckpt"], weights_only=True)
+    del raw["metrics"]["covariance"]
+    old = tmp_path / "old.pt"
+    torch.save(raw, old)
+    argv = ["evaluate", str(old), str(run["csv"]), *RENAMED, "--position-unit", "deg"]
+    assert main([*argv, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["sigma"] == "filter"
+    assert main(argv) == 0
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("σ: the filter's own P_θθ, narrower than the real error as a rule")
 
 
 def test_simulate_writes_the_runs_simulation_and_says_its_units(

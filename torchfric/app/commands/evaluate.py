@@ -99,6 +99,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         "unit": {"q": unit, "qdot": f"{unit}/s"},  # of rms_q and rms_qdot (SI)
         # ± σ from the checkpoint's P_θθ: the run's covariance (docs/estimators.md, Uncertainty)
         "parameters": parameter_table(model, state.get("P_theta")),
+        "sigma": ((raw.get("metrics") or {}).get("covariance") or {}).get("method") or "filter",
     }
     if args.json:
         print(json.dumps(json_safe(out)[0], indent=2, allow_nan=False))
@@ -109,7 +110,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print()
         print("parameters (value ± σ):")
         print("\n".join(parameter_lines(out["parameters"], limit=len(out["parameters"]))))
+        print(_SIGMA.get(out["sigma"], _SIGMA["filter"]))
     return 0
+
+
+# Where evaluate's σ come from, by the checkpoint's metrics ``covariance.method``
+# (docs/estimators.md, Uncertainty); "filter": a checkpoint without one.
+_SIGMA = {
+    "sandwich": "σ: the run's sandwich covariance of its one-step prediction error at this θ",
+    "sandwich_simulation": "σ: the run's sandwich covariance of its simulation error at this θ",
+    "filter": "σ: the filter's own P_θθ, narrower than the real error as a rule: this checkpoint "
+    "holds no covariance of its run (written before torchfric computed one, or the run could "
+    "not); train it again for σ that cover the truth",
+}
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
