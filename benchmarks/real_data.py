@@ -53,6 +53,8 @@ RUNS: dict[str, list[str]] = {
         "emps_tanh_ekf_oe",
         "emps_tanh_asym_oe",
         "emps_lugre_asym_oe",
+        "emps_lugre_asym_ekf",
+        "emps_lugre_asym_ekf_oe",
         "emps_defaults",
     ],
     "hsm150": ["hsm150_tanh_oe", "hsm150_tanh_asym_oe", "hsm150_defaults"],
