@@ -84,6 +84,31 @@ def test_dialects_read_as_the_clean_csv(tmp_path, record, sep) -> None:  # type:
         np.testing.assert_array_equal(getattr(lab, key).numpy(), getattr(clean, key).numpy())
 
 
+@pytest.mark.parametrize("suffix", [".txt", ".tsv", ".dat", ".TXT"])
+def test_text_tables_named_as_loggers_name_them_read_as_the_csv(tmp_path, record, suffix, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    # A LabVIEW or oscilloscope export: tab-separated, units in the header, named .txt or .dat.
+    clean = load_experiment(_clean(tmp_path / "clean.csv", record))
+    rows = [f"{t:.6f}\t{u:.10g}\t{q:.12g}" for t, u, q in
+            zip(record["t"], record["u"], record["q"] * DEG, strict=True)]  # fmt: skip
+    path = tmp_path / f"log_ident{suffix}"
+    path.write_text("Time [s]\tCurrent [A]\tAngle [deg]\n" + "\n".join(rows) + "\n")
+    cols = {"t": "Time [s]", "u": "Current [A]", "q": "Angle [deg]"}
+    lab = load_experiment(path, columns=cols, position_unit="deg")
+    np.testing.assert_array_equal(lab.t.numpy(), clean.t.numpy())
+    np.testing.assert_allclose(lab.q.numpy(), clean.q.numpy(), rtol=1e-11, atol=1e-12)
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", path.name, "--c-m", "0.8", "--out", "log.toml"]) == 0
+    out = capsys.readouterr().out
+    assert f"{path.name} is tab-separated: read as such" in out
+    d = Config.load(tmp_path / "log.toml").data
+    assert d.columns == cols and d.position_unit == "deg"
+    # a data file's name is refused as init's output and as a config
+    assert main(["init", path.name, "--c-m", "0.8", "--out", f"x{suffix}"]) == 2
+    assert "names a data file" in capsys.readouterr().err
+    assert main(["check", path.name]) == 2
+    assert "is a data file, not a config" in capsys.readouterr().err
+
+
 def test_german_header_units_are_applied_or_refused(tmp_path, record) -> None:  # type: ignore[no-untyped-def]
     path = _german(tmp_path / "messung.csv", record)
     cols = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}

@@ -242,3 +242,15 @@ def test_a_runs_report_is_self_contained_and_shows_the_runs_numbers(
     # the σ are said to be what they are: this EKF run's sandwich, not the filter's P_θθ
     assert metrics["covariance"]["method"] == "sandwich"
     assert "sandwich covariance" in body and "filter's own belief" not in body
+
+
+def test_a_parameter_without_sigma_is_explained_by_what_the_run_had() -> None:
+    # A run with a covariance gives no σ to a parameter held at its bound or not determined by
+    # the data (identifiability names it); a run without one gives none at all.
+    from torchfric.app.artifacts.report import _parameters
+
+    params = {"inertia": {"value": 0.3, "std": 1e-3}, "W1[3]": {"value": 0.36, "std": None}}
+    held = _parameters({"parameters": params, "covariance": {"method": "sandwich"}})
+    assert "0.36 ± –" in held and "held at its bound" in held and "no covariance" not in held
+    bare = _parameters({"parameters": {"W1[3]": {"value": 0.36, "std": None}}})
+    assert "no covariance was computed" in bare and "held at its bound" not in bare

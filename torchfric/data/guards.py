@@ -106,14 +106,14 @@ def _check_memory(p: pathlib.Path, size: int) -> None:
     if available is None:
         return
     suffix = p.suffix.lower()
-    if suffix == ".csv":
+    if suffix == ".npz":
+        array_bytes = _npz_array_bytes(p, size)
+    elif suffix == ".mat":  # arrays as large as the file (a compressed v7 file expands further)
+        array_bytes = size
+    else:  # a text table (.csv, .txt, .tsv, .dat: `readers.TEXT_TYPES`)
         if _CSV_MAX_EXPANSION * size * _LOAD_MEMORY_RATIO <= available:
             return  # fits even at the densest text: nothing to read
         array_bytes = _csv_array_bytes(p, size)
-    elif suffix == ".npz":
-        array_bytes = _npz_array_bytes(p, size)
-    else:  # .mat: arrays as large as the file (a compressed v7 file expands further)
-        array_bytes = size
     require_memory(
         int(array_bytes * _LOAD_MEMORY_RATIO),
         f"data file {p} is {_format_bytes(size)}: loading it",

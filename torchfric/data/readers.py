@@ -23,7 +23,14 @@ from .guards import _check_memory, _check_regular_file
 from .lab import nice_period, read_text_table, split_segments, wrap_jumps
 from .units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, position_factor, split_unit
 
-__all__ = ["FILE_TYPES", "load_experiment", "load_segments", "read_columns", "save_csv"]
+__all__ = [
+    "FILE_TYPES",
+    "TEXT_TYPES",
+    "load_experiment",
+    "load_segments",
+    "read_columns",
+    "save_csv",
+]
 
 PathLike = str | os.PathLike[str]
 
@@ -77,8 +84,11 @@ def _read_mat(path: pathlib.Path) -> dict[str, np.ndarray]:
     return {key: np.asarray(val) for key, val in raw.items() if not key.startswith("__")}
 
 
+TEXT_TYPES: tuple[str, ...] = (".csv", ".txt", ".tsv", ".dat")
+"""Suffixes of text tables (`read_text_table`: the separator and the decimal mark sniffed), as
+loggers name them: a LabVIEW or oscilloscope export is often a tab-separated .txt or .dat."""
 _READERS: dict[str, Callable[[pathlib.Path], dict[str, np.ndarray]]] = {
-    ".csv": _read_csv,
+    **dict.fromkeys(TEXT_TYPES, _read_csv),
     ".npz": _read_npz,
     ".mat": _read_mat,
 }
@@ -172,7 +182,7 @@ def _read_table(p: pathlib.Path) -> tuple[dict[str, np.ndarray], Callable[[int],
             f"{p}: the file is empty (0 bytes); give a file holding the record (t, u, q columns)"
         )
     _check_memory(p, size)
-    if p.suffix.lower() == ".csv":
+    if p.suffix.lower() in TEXT_TYPES:
         table, _, lines = read_text_table(p)
         return table, lines.where
     return _READERS[p.suffix.lower()](p), lambda k: f"index {k}"

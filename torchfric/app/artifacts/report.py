@@ -144,10 +144,17 @@ def _parameters(metrics: Mapping[str, Any]) -> str:
     known = any(std is not None for _, _, std in table)
     unknown = any(std is None for _, _, std in table)
     method = (metrics.get("covariance") or {}).get("method")
+    missing = ""  # what a "–" means: a run with a covariance gives none to some parameters
+    if unknown:
+        missing = (
+            "–: no σ: the data do not determine it, or it is held at its bound (Identifiability)."
+            if known
+            else "–: not known (no covariance was computed for this run)."
+        )
     note = (
         '<p class="note">'
         + (_SIGMA_NOTES.get(method, _SIGMA_NOTES[None]) if known else "")
-        + ("–: not known (no covariance was computed for this run)." if unknown else "")
+        + missing
         + "</p>"
     )
     return f"<table>{head}{''.join(rows)}</table>{note}"

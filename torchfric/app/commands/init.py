@@ -52,7 +52,7 @@ import numpy as np
 
 from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_segments
 from ...data.lab import sniff_format
-from ...data.readers import read_columns, save_csv
+from ...data.readers import FILE_TYPES, TEXT_TYPES, read_columns, save_csv
 from ...data.units import POSITION_UNITS
 from ...errors import TorchfricError
 from ...files import atomic_write_text
@@ -308,7 +308,7 @@ def _c_m(value: float | str | None) -> float:
 
 def _out_path(data: pathlib.Path, out: str | os.PathLike[str] | None, force: bool) -> pathlib.Path:
     target = pathlib.Path(f"{data.stem}.toml" if out is None else out).absolute()
-    if target.suffix.lower() in (".csv", ".npz", ".mat") or target.resolve() == data.resolve():
+    if target.suffix.lower() in FILE_TYPES or target.resolve() == data.resolve():
         raise TorchfricError(
             f"--out {target} names a data file; init writes a config: give a .toml file name"
         )
@@ -348,7 +348,7 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
         )
     except TorchfricError as err:
         raise TorchfricError(f"{data}: {err}") from None
-    if data.suffix.lower() == ".csv":
+    if data.suffix.lower() in TEXT_TYPES:
         fmt = sniff_format(data)[0]
         if fmt.delimiter != "," or fmt.decimal != ".":
             plan.notes.append(f"{data.name} is {fmt.describe()}: read as such")

@@ -241,7 +241,7 @@ class Config:
                 f"config file {shorten(repr(str(p)))} {what} (working directory {os.getcwd()}); "
                 "give the path of a .toml file"
             )
-        if p.suffix.lower() in (".csv", ".npz", ".mat", ".txt", ".dat"):
+        if p.suffix.lower() in (".csv", ".txt", ".tsv", ".dat", ".npz", ".mat"):  # FILE_TYPES
             raise TorchfricError(
                 f"{shorten(str(p))} is a data file, not a config; give a .toml config (write "
                 f"one for this file with: torchfric init {shorten(str(p))} --c-m VALUE)"
