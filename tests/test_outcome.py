@@ -281,6 +281,15 @@ def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(
     text = " ".join(result_warnings(cfg, model, metrics, "prefit", covariance=P, start=model))
     assert model.theta_names[0] not in text.split("informed")[-1].split(":")[0]
     assert "hardly informed" in text  # the others still are not
+    assert "so the ± shows the prior" in text  # no covariance of the run: the ± are P_θθ's
+    # with the run's covariance the ± are the data's; an entry held at its bound is left out
+    held = model.theta_names[1]
+    ran = {**metrics, "covariance": {"method": "sandwich"},
+           "identifiability": {"held_at_bound": [held]}}  # fmt: skip
+    text = " ".join(result_warnings(cfg, model, ran, "prefit", covariance=P0, start=model))
+    listed = text.split("hardly informed ")[1].split(":")[0].split(", ")
+    assert held not in listed and set(listed) == set(model.theta_names) - {held}
+    assert "the ± shown are the data's" in text and "shows the prior" not in text
     half = 0.5 * P0
     assert not any(
         "informed" in w

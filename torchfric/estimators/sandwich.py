@@ -264,9 +264,9 @@ class Identifiability:
                 "smaller model, or excite the machine so that they act differently"
             )
         out += [
-            f"{n} sits at its lower bound (the data would take it lower): it is held there, "
-            "without σ, and the other σ and the curve's band take it as fixed; a neuron that "
-            "wants a lower slope is taking the viscous term's role, see model.saturation"
+            f"{n} sits at its lower bound (model.saturation / v95): held there, without σ; the "
+            "other σ and the curve's band take it as fixed (a neuron at its floor is unused, its "
+            "W2 near 0, or shares the viscous slope, which a viscous line then names)"
             for n in self.held
         ]
         return out + [s.message for s in self.shares]

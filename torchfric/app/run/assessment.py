@@ -52,26 +52,36 @@ def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
     return []
 
 
-def _uninformed(cfg: Config, final: ArmModel, covariance: Any, start: ArmModel | None) -> list[str]:
+def _uninformed(
+    cfg: Config, final: ArmModel, covariance: Any, start: ArmModel | None, metrics: dict[str, Any]
+) -> list[str]:
     """Parameters the data did not inform: their σ after the passes is still ≥ 90 % of the
-    start's (the filter's prior, `EKFTuning.initial_P_theta` at the starting θ)."""
+    start's (the filter's prior, `EKFTuning.initial_P_theta` at the starting θ). Those held at
+    their bound are left out (identifiability says so), and where the run reports the
+    sandwich's σ (`metrics` ``covariance``) the ± are not the prior's."""
     if covariance is None or start is None or cfg.estimator.method != "ekf":
         return []
+    held = set((metrics.get("identifiability") or {}).get("held_at_bound") or [])
     P = torch.as_tensor(covariance, dtype=torch.float64)
     P0 = cfg.estimator.ekf_tuning().initial_P_theta(start, start.get_theta())
     prior, now = torch.diagonal(P0).sqrt(), torch.diagonal(P).clamp_min(0.0).sqrt()
     names = [
         n
         for n, a, b in zip(final.theta_names, prior.tolist(), now.tolist(), strict=True)
-        if a > 0 and b >= 0.9 * a
+        if a > 0 and b >= 0.9 * a and n not in held
     ]
     if not names:
         return []
     which = "its σ is" if len(names) == 1 else "their σ are"
+    shown = (
+        "the ± shown are the data's (the run's covariance)"
+        if metrics.get("covariance")
+        else "so the ± shows the prior, not what the data say"
+    )
     return [
-        f"the data hardly informed {', '.join(names)}: {which} still at least 90 % of the "
-        "prior's (estimator.p0_theta), so the ± shows the prior, not what the data say; a "
-        "smaller model (model.size) or richer excitation would pin them down"
+        f"the data hardly informed {', '.join(names)}: the filter's {which} still at least 90 % "
+        f"of its prior (estimator.p0_theta); {shown}; a smaller model (model.size) or richer "
+        "excitation would pin them down"
     ]
 
 
@@ -98,7 +108,7 @@ def result_warnings(
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
-    out += _uninformed(cfg, final, covariance, start)
+    out += _uninformed(cfg, final, covariance, start, metrics)
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
             fit = m.get("fit_q")
