@@ -72,7 +72,7 @@ def _uninformed(
     ]
     if not names:
         return []
-    which = "its σ is" if len(names) == 1 else "their σ are"
+    which = "σ is" if len(names) == 1 else "σ are"
     shown = (
         "the ± shown are the data's (the run's covariance)"
         if metrics.get("covariance")
