@@ -60,6 +60,7 @@ from .sandwich import (  # noqa: F401 - _bartlett, _inverse: re-exported for the
     at_bound,
     identifiability,
     long_run_covariance,
+    sandwich,
     score_sums,
 )
 from .settings import EKFTuning
@@ -315,8 +316,7 @@ def pem_covariance(
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
     held = at_bound(model, theta)  # a neuron's slope pinned at its floor: held there
-    inv = _inverse(info, held)
-    cov = 0.5 * (inv @ J @ inv + (inv @ J @ inv).T)
+    inv, cov = sandwich(info, J, held)
     return PEMCovariance(
         theta=theta.clone(),
         cov=cov,

@@ -83,13 +83,14 @@ from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import simulate
-from .sandwich import (
+from .sandwich import (  # noqa: F401 - _inverse: re-exported for the tests
     BLOCKS,
     PEMCovariance,
     _inverse,
     at_bound,
     identifiability,
     long_run_covariance,
+    sandwich,
 )
 from .shooting import METHOD, ExperimentTensors, prepare, scales, solver_substeps
 
@@ -165,8 +166,7 @@ def simulation_covariance(
     gradient = scores.sum(0)
     J, lags = long_run_covariance(scores, segment)
     held = at_bound(model, theta)  # a neuron's slope pinned at its floor: held there
-    inv = _inverse(information, held)
-    cov = 0.5 * (inv @ J @ inv + (inv @ J @ inv).T)
+    inv, cov = sandwich(information, J, held)
     # ℓ concentrated in σ̂² (channels of weight 0 do not count): −(n/2) Σ_c w_c (ln 2πσ̂_c² + 1)
     per_channel = torch.log(2.0 * math.pi * var.clamp_min(1e-300)) + 1.0
     loglik = -0.5 * n * float(torch.where(w > 0, w * per_channel, 0.0).sum())

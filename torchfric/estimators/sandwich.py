@@ -292,7 +292,7 @@ def identifiability(
     """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`), near-null
     directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
     of the largest) among the entries not `held` (bool `(k,)`, `at_bound`), and those held."""
-    free = _free(held, len(names))
+    free = torch.ones(len(names), dtype=torch.bool) if held is None else ~held.to(torch.bool)
     out = Identifiability(held=[n for n, f in zip(names, free.tolist(), strict=True) if not f])
     names = [n for n, f in zip(names, free.tolist(), strict=True) if f]
     information, cov = information[free][:, free], cov[free][:, free]
@@ -440,8 +440,11 @@ def at_bound(model: Any, theta: Tensor) -> Tensor:
     return mask & (model.physical_slope(theta.reshape(-1)) < BOUND_SLOPE)
 
 
-def _free(held: Tensor | None, k: int) -> Tensor:
-    return torch.ones(k, dtype=torch.bool) if held is None else ~held.to(torch.bool)
+def sandwich(information: Tensor, J: Tensor, held: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(I⁻¹, I⁻¹ J I⁻¹)`` symmetrised, with `_inverse` (the entries `held` left out)."""
+    inv = _inverse(information, held)
+    cov = inv @ J @ inv
+    return inv, 0.5 * (cov + cov.T)
 
 
 def _inverse(information: Tensor, held: Tensor | None = None) -> Tensor:
@@ -449,12 +452,11 @@ def _inverse(information: Tensor, held: Tensor | None = None) -> Tensor:
     non-positive or negligible eigenvalue get no inverse (a pseudo-inverse): they are reported
     by `identifiability`, not hidden behind a huge σ. The entries `held` (bool `(k,)`,
     `at_bound`) are left out: their rows and columns are zero."""
-    free = _free(held, information.shape[0])
+    k = information.shape[0]
+    idx = torch.arange(k) if held is None else (~held.to(torch.bool)).nonzero()[:, 0]
     out = torch.zeros_like(information)
-    if bool(free.any()):
-        out[free.nonzero()[:, 0][:, None], free.nonzero()[:, 0][None, :]] = _pinv(
-            information[free][:, free]
-        )
+    if idx.numel():
+        out[idx[:, None], idx] = _pinv(information[idx][:, idx])
     return out
 
 

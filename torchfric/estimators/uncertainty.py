@@ -11,9 +11,9 @@ has the covariance
 through the exponentials of the log-stored entries. The band is exact when F is affine in θ (e.g.
 only the output weights W2 of the tanh network uncertain) and an approximation otherwise.
 
-Read such a band for what it is: the filter's own belief. After several off-line passes over the
-same data ``P_θθ`` has absorbed the data once per pass, and it knows nothing about structural
-error (a static curve fitted to a dynamic LuGre system), so it is narrower than the real error.
+The band is as good as the covariance given (`SIGMA_SOURCES`): a run's checkpoint holds its
+sandwich covariance; the filter's own ``P_θθ`` (a checkpoint without one) has absorbed the data
+once per pass and knows nothing about structural error, so it is narrower than the real error.
 """
 
 from __future__ import annotations
@@ -25,12 +25,26 @@ from ..errors import TorchfricError
 from ..models.arm import ArmModel
 
 __all__ = [
+    "SIGMA_SOURCES",
     "friction_jacobian",
     "friction_band",
     "friction_samples",
     "parameter_std",
     "physical_std",
 ]
+
+
+SIGMA_SOURCES: dict[str, str] = {
+    "sandwich": "the run's sandwich covariance of its one-step prediction error at this θ "
+    "(I⁻¹JI⁻¹ over all identification records), plus the distance to the run's other estimate "
+    "where the kept pass and the likelihood's optimum differ",
+    "sandwich_simulation": "the run's sandwich covariance of its simulation error at this θ "
+    "(output error)",
+    "filter": "the filter's own P_θθ, narrower than the real error as a rule",
+}
+"""Where a run's σ come from, by its covariance's method (metrics.json ``covariance.method``,
+`torchfric.estimators.sandwich.PEMCovariance.method`); "filter": a run or checkpoint without a
+covariance of its own. `evaluate` and report.html say it beside the σ."""
 
 
 def _check(model: ArmModel, P_theta: Tensor | None, theta: Tensor | None) -> Tensor:

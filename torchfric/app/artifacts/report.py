@@ -22,6 +22,7 @@ from torch import Tensor
 
 from ...data import Experiment
 from ...estimators.metrics import SimulationScore
+from ...estimators.uncertainty import SIGMA_SOURCES
 from ...files import atomic_write_text
 from ...models.arm import ArmModel
 from ...models.lugre import CLASS_NAMES
@@ -151,27 +152,10 @@ def _parameters(metrics: Mapping[str, Any]) -> str:
             if known
             else "–: not known (no covariance was computed for this run)."
         )
-    note = (
-        '<p class="note">'
-        + (_SIGMA_NOTES.get(method, _SIGMA_NOTES[None]) if known else "")
-        + missing
-        + "</p>"
-    )
+    source = SIGMA_SOURCES.get(method or "filter", SIGMA_SOURCES["filter"])
+    said = f"σ: {_e(source)} (docs/estimators.md, Uncertainty). " if known else ""
+    note = f'<p class="note">{said}{missing}</p>'
     return f"<table>{head}{''.join(rows)}</table>{note}"
-
-
-# Where the σ above come from, by metrics.json's ``covariance.method`` (docs/estimators.md,
-# "Uncertainty"); None: a run that kept no covariance of its own (the filter's P_θθ).
-_SIGMA_NOTES: dict[str | None, str] = {
-    "sandwich": "σ: the sandwich covariance I<sup>−1</sup>JI<sup>−1</sup> of the one-step "
-    "prediction-error likelihood at the reported θ, over all identification records, plus the "
-    "distance to the run's other estimate where the kept pass and the likelihood's optimum "
-    "differ (docs/estimators.md, Uncertainty). ",
-    "sandwich_simulation": "σ: the sandwich covariance of the open-loop simulation error at the "
-    "reported θ (output error; docs/estimators.md, Uncertainty). ",
-    None: "σ is the filter's own belief (from its parameter covariance P<sub>θθ</sub>); after "
-    "several passes over the same data it is narrower than the real error. ",
-}
 
 
 def _fits(metrics: Mapping[str, Any]) -> str:

@@ -110,19 +110,20 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print()
         print("parameters (value ± σ):")
         print("\n".join(parameter_lines(out["parameters"], limit=len(out["parameters"]))))
-        print(_SIGMA.get(out["sigma"], _SIGMA["filter"]))
+        print(_sigma_line(out["sigma"]))
     return 0
 
 
-# Where evaluate's σ come from, by the checkpoint's metrics ``covariance.method``
-# (docs/estimators.md, Uncertainty); "filter": a checkpoint without one.
-_SIGMA = {
-    "sandwich": "σ: the run's sandwich covariance of its one-step prediction error at this θ",
-    "sandwich_simulation": "σ: the run's sandwich covariance of its simulation error at this θ",
-    "filter": "σ: the filter's own P_θθ, narrower than the real error as a rule: this checkpoint "
-    "holds no covariance of its run (written before torchfric computed one, or the run could "
-    "not); train it again for σ that cover the truth",
-}
+def _sigma_line(method: str) -> str:
+    """Where evaluate's σ come from, by the checkpoint's metrics ``covariance.method``."""
+    from ...estimators.uncertainty import SIGMA_SOURCES
+
+    method = method if method in SIGMA_SOURCES else "filter"
+    line = f"σ: {SIGMA_SOURCES[method]}"
+    if method == "filter":
+        line += ": this checkpoint holds no covariance of its run (written before torchfric "
+        line += "computed one, or the run could not); train it again for σ that cover the truth"
+    return line
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

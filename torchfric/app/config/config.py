@@ -53,6 +53,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NoReturn
 
+from ...data.readers import FILE_TYPES
 from ...data.rig import RigParameters
 from ...data.units import COLUMN_NAMES
 from ...errors import TorchfricError, shorten
@@ -241,7 +242,7 @@ class Config:
                 f"config file {shorten(repr(str(p)))} {what} (working directory {os.getcwd()}); "
                 "give the path of a .toml file"
             )
-        if p.suffix.lower() in (".csv", ".txt", ".tsv", ".dat", ".npz", ".mat"):  # FILE_TYPES
+        if p.suffix.lower() in FILE_TYPES:
             raise TorchfricError(
                 f"{shorten(str(p))} is a data file, not a config; give a .toml config (write "
                 f"one for this file with: torchfric init {shorten(str(p))} --c-m VALUE)"
