@@ -366,6 +366,15 @@ def test_csv_round_trip_any_finite_float(values: np.ndarray) -> None:
         assert load_experiment(path).fingerprint() == e.fingerprint()
 
 
+def test_csv_round_trip_keeps_negative_zero(tmp_path: pathlib.Path) -> None:
+    # Hypothesis found it: a column of "-0" reads as integers and came back as +0.
+    e = make_experiment(_time(12), -np.zeros(12), np.where(np.arange(12) % 2, -0.0, 1.5))
+    path = tmp_path / "zeros.csv"
+    save_csv(path, e)
+    back = load_experiment(path)
+    assert bool(torch.signbit(back.u).all()) and back.fingerprint() == e.fingerprint()
+
+
 def test_csv_with_comments_extra_columns_and_mapping(tmp_path: pathlib.Path) -> None:
     t = _time(20)
     body = "\n".join(f"{ti!r}, {2 * ti!r}, 9.0, {ti**2!r}" for ti in t.tolist())

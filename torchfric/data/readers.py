@@ -425,12 +425,17 @@ def load_experiment(
 def save_csv(path: PathLike, experiment: Experiment, *, include_qdot: bool = True) -> None:
     """Write header ``t,u,q[,qdot]`` and rows in ``%.17g`` (reloads bit-exactly).
 
-    ``qdot`` is written when `include_qdot` is true and the experiment has one.
+    ``qdot`` is written when `include_qdot` is true and the experiment has one. A negative zero
+    is written ``-0.0``: as ``-0`` a column of them reads as integers, and comes back as +0.
     """
     arrays = experiment.to_numpy()
     names = ["t", "u", "q"] + (["qdot"] if include_qdot and "qdot" in arrays else [])
     data = np.column_stack([arrays[key] for key in names])
+    text = np.char.mod("%.17g", data).astype(object)
+    text[(data == 0) & np.signbit(data)] = "-0.0"
     try:
-        np.savetxt(path, data, fmt="%.17g", delimiter=",", header=",".join(names), comments="")
+        with open(path, "w", encoding="utf-8", newline="\n") as f:
+            f.write(",".join(names) + "\n")
+            f.writelines(",".join(row) + "\n" for row in text)
     except OSError as exc:
         raise TorchfricError(f"{path}: cannot write the file ({_one_line(exc)})") from None
