@@ -28,6 +28,7 @@ from torchfric.data import (
     zero_phase_acceleration,
     zero_phase_derivative,
 )
+from torchfric.data.filters import first_order
 from torchfric.errors import TorchfricError
 
 DT = 1e-3  # 1 kHz, as in the paper and the EMPS / HSM150 records
@@ -63,22 +64,46 @@ def test_highpass_is_the_stated_difference_equation() -> None:
     q = np.cumsum(np.random.randn(60)) * 1e-3
     p, g = _tustin_coefficients(DT, 200.0)
     expected = np.zeros_like(q)
-    for k in range(1, q.size):  # the docstring's equation, literally; v[0] = 0
-        expected[k] = p * expected[k - 1] + g * (q[k] - q[k - 1])
+    s = (q[1] - q[0]) / DT  # the docstring's equation, literally, from v[−1] = s
+    before, q_before = s, q[0] - s * DT
+    for k in range(q.size):
+        expected[k] = p * before + g * (q[k] - q_before)
+        before, q_before = expected[k], q[k]
     torch.testing.assert_close(
         highpass_derivative(torch.from_numpy(q), DT), torch.from_numpy(expected)
     )
 
 
 def test_highpass_matches_scipy_bilinear_transform() -> None:
-    # an independent discretisation of H(s) = s·ωc/(s+ωc), started at rest at q[0]
+    # an independent discretisation of H(s) = s·ωc/(s+ωc), run over 400 samples of the ramp
+    # that continues the record's first step backwards (started at rest there, settled by
+    # q[0]): the motion the differentiator assumes before the record
     wc = 2 * math.pi * 150.0
     b, a = scipy.signal.bilinear([wc, 0.0], [1.0, wc], fs=1 / DT)
     q = 0.4 + np.cumsum(np.random.randn(500)) * 1e-3
-    expected, _ = scipy.signal.lfilter(b, a, q, zi=scipy.signal.lfilter_zi(b, a) * q[0])
+    lead = q[0] + (q[1] - q[0]) * np.arange(-400, 0)
+    x = np.concatenate([lead, q])
+    expected, _ = scipy.signal.lfilter(b, a, x, zi=scipy.signal.lfilter_zi(b, a) * x[0])
     torch.testing.assert_close(
-        highpass_derivative(torch.from_numpy(q), DT, 150.0), torch.from_numpy(expected)
+        highpass_derivative(torch.from_numpy(q), DT, 150.0), torch.from_numpy(expected[400:])
     )
+
+
+def test_highpass_starts_at_the_motions_speed() -> None:
+    # a record that starts in motion reads its speed from the first sample (a ramp: exactly),
+    # where a start from rest read about 0 for 5 samples; one that starts at rest is
+    # bit-identical to the zero-state filter
+    t = _time(200)
+    ramp = highpass_derivative(torch.from_numpy(0.3 - 0.085 * t), DT).numpy()
+    np.testing.assert_allclose(ramp, -0.085, rtol=1e-12)
+    q = np.concatenate([np.full(5, 0.2), 0.2 + 0.5 * t[:195] ** 2])
+    p, g = _tustin_coefficients(DT, 200.0)
+    rest = first_order(np.diff(q, prepend=q[:1]), p, g)  # the filter from a zero state
+    assert np.array_equal(highpass_derivative(torch.from_numpy(q), DT).numpy(), rest)
+    # a sine entered at its fastest: within the filter's lag of the true derivative at once
+    v = highpass_derivative(torch.from_numpy(0.3 * np.sin(2 * np.pi * 2.0 * t)), DT).numpy()
+    true = 0.3 * 2 * np.pi * 2.0 * np.cos(2 * np.pi * 2.0 * t)
+    assert np.abs(v - true).max() < 0.01 * true.max()
 
 
 def test_highpass_sine_amplitude_and_phase() -> None:
@@ -103,10 +128,9 @@ def test_highpass_ramp_and_constant() -> None:
     t = _time(200)
     slope = 0.7
     v = highpass_derivative(torch.from_numpy(0.1 + slope * t), DT).numpy()
-    p, _ = _tustin_coefficients(DT, 200.0)
-    # unit low-frequency gain: v[k] = slope·(1 − p^k) exactly, the slope itself after ~30 samples
-    np.testing.assert_allclose(v, slope * (1 - p ** np.arange(t.size)), rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(v[30:], slope, rtol=1e-10)
+    # unit low-frequency gain, and the ramp continued before the record: the slope from the
+    # first sample on (a filter started from rest read slope·(1 − p^k))
+    np.testing.assert_allclose(v, slope, rtol=1e-10)
     # steady-state start: a signal at rest gives exactly 0 from the first sample
     rest = highpass_derivative(torch.full((100,), 1234.5678), DT)
     assert torch.equal(rest, torch.zeros(100))

@@ -42,9 +42,18 @@ def highpass_derivative(q: ArrayLike, dt: float, cutoff_hz: float = 200.0) -> Te
     ``atan(ωc·dt/2)/(π·dt)`` (178.6 Hz for 200 Hz at 1 kHz). Backward Euler would add half a
     sample of lag. With ``K = 2/dt``, ``p = (K − ωc)/(K + ωc)``, ``g = K·ωc/(K + ωc)``::
 
-        v[k] = p·v[k−1] + g·(q[k] − q[k−1]),   v[0] = 0 (q[−1] = q[0]: at rest before k = 0)
+        v[k] = p·v[k−1] + g·(q[k] − q[k−1])
 
-    so a constant q gives exactly 0 from the first sample.
+    started as if the motion before the record had gone on at its first step's speed
+    ``s = (q[1] − q[0])/dt``: ``v[−1] = s``, ``q[−1] = q[0] − s·dt``, the filter's steady state
+    on that ramp, so ``v[0] = s``. A record that starts at rest (``q[1] = q[0]``) starts at
+    ``v = 0`` exactly, as from a zero initial state, and a constant q gives exactly 0 from the
+    first sample; one that starts in motion (a logger started mid-move, a record cut out of a
+    longer one with ``data.start``) starts at its speed, not at 0. Before 2026-11-26 the filter
+    started from rest, and its first samples read about 0 on such a record: with the paper's
+    ``P0 = 0`` (the initial state known) the EKF then took that 0 as the truth and the
+    estimates wandered off (on an EMPS-like axis cut at 60 s, moving at 0.085 m/s, inertia
+    0.2 kg against 95).
 
     Args:
         q: `(..., N)` position; filtered along the last axis.
@@ -60,11 +69,20 @@ def highpass_derivative(q: ArrayLike, dt: float, cutoff_hz: float = 200.0) -> Te
     k = 2.0 / dt
     p = (k - wc) / (k + wc)
     g = k * wc / (k + wc)
-    # Δq[k] = q[k] − q[k−1] with q[−1] = q[0]
-    dq = np.diff(qa, axis=-1, prepend=qa[..., :1])
-    # v[k] = p·v[k−1] + g·Δq[k], zero initial state
+    # the first step's speed s; Δq[k] = q[k] − q[k−1] with q[−1] = q[0] − s·dt
+    first = qa[..., 1:2] - qa[..., :1]
+    dq = np.diff(qa, axis=-1, prepend=qa[..., :1] - first)
+    # v[k] = p·v[k−1] + g·Δq[k] from v[−1] = s: the zero-state response plus s·p^(k+1)
     v = first_order(dq, p, g)
+    if np.any(first != 0.0):
+        n = min(qa.shape[-1], _decay_samples(p))
+        v[..., :n] += (first / dt) * p ** np.arange(1, n + 1)
     return _as_tensor(v)
+
+
+def _decay_samples(p: float) -> int:
+    """Samples until ``|p|^k`` is below 1e-20 (past rounding of any velocity it is added to)."""
+    return 1 if abs(p) < 1e-20 else math.ceil(math.log(1e-20) / math.log(abs(p)))
 
 
 def _zero_phase_lowpass(
@@ -149,7 +167,9 @@ def reconstruct_velocity(
 
 def settling_samples(method: str, dt: float, cutoff_hz: float | None = None) -> int:
     """Samples after a start in motion before `method`'s velocity is the motion's: the
-    high-pass differentiator starts at v = 0 and its error decays as ``p^k`` (to 1e-3 here);
+    high-pass differentiator starts at its first step's speed, off by the noise of one
+    difference and what the speed changed within the step, and that error decays as ``p^k``
+    (to 1e-3 here; a segment that gaps cut is started after them, a margin);
     the zero-phase filter's ends are off for ≈ 3 cut-off periods (``3/(cutoff_hz·dt)``);
     0 for any other method (a measured velocity)."""
     if method not in VELOCITY_METHODS:

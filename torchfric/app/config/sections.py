@@ -67,7 +67,8 @@ class DataConfig(TableSection):
             ``velocity = "measured"``.
         time_step: sample period [s] for files without a t column (checked against t otherwise).
         velocity: q̇ measurement for the estimators: "highpass" (the paper's causal
-            differentiator), "zero_phase" (off-line) or "measured" (the file's qdot column).
+            differentiator, started at the record's first-step speed, so a record may start
+            in motion), "zero_phase" (off-line) or "measured" (the file's qdot column).
         velocity_cutoff_hz: cut-off of the reconstruction [Hz], below the Nyquist frequency
             1/(2·time step); ``None`` = the method's default (`DEFAULT_CUTOFF_HZ`: 200 Hz for
             "highpass", 50 Hz for "zero_phase"; a file sampled at 400 Hz or slower needs a
