@@ -509,3 +509,32 @@ def test_output_error_run_warm_started_from_the_ekf(
     assert [e.step for e in acc.Scalars("oe/loss")] == [1, 2, 3, 4]
     assert "parameters/inertia" in acc.Tags()["scalars"]
     assert sorted(p.name for p in (run / "passes").glob("epoch_*.pt"))
+
+
+def test_a_direct_train_call_computes_as_the_cli(tmp_path: pathlib.Path) -> None:
+    """`torchfric.app.run.train` itself runs under the CLI's torch settings (float64, one
+    thread unless TORCHFRIC_THREADS says more), and restores the caller's: called from a
+    script with torch's default threads, the pre-fit had summed in another order, and on
+    EMPS the LuGre EKF then came out at 8.2 mm on the test file against the CLI's 14.5."""
+    from torchfric.app.config import Config
+    from torchfric.app.run import train
+    from torchfric.estimators.observers import Callback
+
+    seen: list[tuple[int, torch.dtype]] = []
+
+    class Probe(Callback):
+        def on_run_start(self, start: object) -> None:
+            seen.append((torch.get_num_threads(), torch.get_default_dtype()))
+
+    overrides = [a for a in SHORT if a != "--set"]
+    cfg = Config.load(_config(tmp_path), overrides)
+    threads, dtype = torch.get_num_threads(), torch.get_default_dtype()
+    torch.set_num_threads(2)
+    torch.set_default_dtype(torch.float32)
+    try:
+        train(cfg, callbacks=(Probe(),), say=lambda _line: None)
+        assert seen == [(1, torch.float64)]
+        assert (torch.get_num_threads(), torch.get_default_dtype()) == (2, torch.float32)
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_default_dtype(dtype)

@@ -8,12 +8,12 @@ Nothing here imports torch at module level: the CLI imports `torch_settings` bef
 
 from __future__ import annotations
 
-import contextlib
 import os
 import sys
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
+from ...environment import torch_settings
 from ...errors import TorchfricError
 
 if TYPE_CHECKING:
@@ -21,26 +21,6 @@ if TYPE_CHECKING:
     from .runner import TrainResult
 
 __all__ = ["fit", "override_strings", "progress_printer", "torch_settings", "train_on_stderr"]
-
-
-@contextlib.contextmanager
-def torch_settings() -> Iterator[None]:
-    """torch as the CLI runs it, restored afterwards: float64 by default, and the thread count
-    of `torchfric.environment.check_environment` (``TORCHFRIC_THREADS``; the filter's tensors
-    are tiny, and a thread pool only adds overhead to them)."""
-    from ...environment import check_environment
-
-    env = check_environment()
-    import torch
-
-    dtype, threads = torch.get_default_dtype(), torch.get_num_threads()
-    torch.set_default_dtype(torch.float64)
-    torch.set_num_threads(env["TORCHFRIC_THREADS"])
-    try:
-        yield
-    finally:
-        torch.set_default_dtype(dtype)
-        torch.set_num_threads(threads)
 
 
 def override_strings(overrides: Mapping[str, Any]) -> list[str]:

@@ -19,6 +19,7 @@ from typing import Any, TextIO
 import torch
 
 from ...data import Experiment
+from ...environment import torch_settings
 from ...errors import RunInterrupted, TorchfricError
 from ...estimators.ensemble import identify_ekf_ensemble
 from ...estimators.identify import EKFResult, PassRecord, identify_ekf
@@ -226,6 +227,7 @@ def _check_checkpoint_target(path: pathlib.Path) -> None:
             ) from None
 
 
+@torch_settings()  # float64, TORCHFRIC_THREADS threads: the arithmetic of the CLI and `fit`
 def train(
     cfg: Config,
     *,
