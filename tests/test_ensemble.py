@@ -350,7 +350,12 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     assert expected == pytest.approx(scores[best], abs=1e-6)
     fit = metrics["validation"]["validation"]
     kept_score = 0.5 * (fit["fit_q"] + fit["fit_qdot"])
-    assert kept_score == pytest.approx(hist[kept_pass - 1]["val_score"], abs=1e-6)
+    if "polished" in metrics:  # the prediction-error polish moved θ: kept unless it validates
+        # worse by more than 0.1 point (`confidence.attach_covariance`); which way it goes
+        # differs between machines (a CPU whose rounding differs took the polish here)
+        assert kept_score >= hist[kept_pass - 1]["val_score"] - 0.1
+    else:
+        assert kept_score == pytest.approx(hist[kept_pass - 1]["val_score"], abs=1e-6)
     # TensorBoard: the kept member's filter diagnostics per pass under the single filter's tags.
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -365,7 +370,9 @@ def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  
     assert logged[scored[-1]["index"] - 1].value == pytest.approx(kept["loglik"], rel=1e-6)
     snap2 = read_checkpoint(run / "passes" / "ensemble_002.pt")
     kept_theta = torch.tensor(hist[kept_pass - 1]["theta"], dtype=torch.float64)
-    torch.testing.assert_close(ckpt["theta"], kept_theta, rtol=0, atol=0)
+    state = ckpt["estimator"]["state"]  # a kept polish moved θ on from the pass's
+    filtered = state["filter_theta"] if "polished" in metrics else ckpt["theta"]
+    torch.testing.assert_close(torch.as_tensor(filtered), kept_theta, rtol=0, atol=0)
     torch.testing.assert_close(
         torch.tensor(scored[-1]["theta"], dtype=torch.float64),
         snap2["estimator"]["state"]["thetas"][best],
