@@ -3,7 +3,7 @@
 =========================  ==========================================================  =======
 variable                   meaning                                                     default
 =========================  ==========================================================  =======
-TORCHFRIC_THREADS          torch's intra-op threads of a run (an integer >= 1)        1
+TORCHFRIC_THREADS          torch's intra-op threads of a run (an integer >= 1)         1
 TORCHFRIC_NATIVE           1: run the filter as generated C; 0: the torch paths        1
 TORCHFRIC_NATIVE_THREADS   threads that share an ensemble's members (integer >= 1)     cores
 TORCHFRIC_CACHE            folder of the compiled-code cache (created private, 0700)   ~/.cache/torchfric
