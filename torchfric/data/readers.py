@@ -422,6 +422,9 @@ def load_experiment(
     return exps[0]
 
 
+_SAVE_ROWS = 65_536  # rows formatted at a time by `save_csv`
+
+
 def save_csv(path: PathLike, experiment: Experiment, *, include_qdot: bool = True) -> None:
     """Write header ``t,u,q[,qdot]`` and rows in ``%.17g`` (reloads bit-exactly).
 
@@ -431,11 +434,13 @@ def save_csv(path: PathLike, experiment: Experiment, *, include_qdot: bool = Tru
     arrays = experiment.to_numpy()
     names = ["t", "u", "q"] + (["qdot"] if include_qdot and "qdot" in arrays else [])
     data = np.column_stack([arrays[key] for key in names])
-    text = np.char.mod("%.17g", data).astype(object)
-    text[(data == 0) & np.signbit(data)] = "-0.0"
     try:
         with open(path, "w", encoding="utf-8", newline="\n") as f:
             f.write(",".join(names) + "\n")
-            f.writelines(",".join(row) + "\n" for row in text)
+            for start in range(0, len(data), _SAVE_ROWS):  # a block at a time: bounded memory
+                block = data[start : start + _SAVE_ROWS]
+                text = np.char.mod("%.17g", block).astype(object)
+                text[(block == 0) & np.signbit(block)] = "-0.0"
+                f.writelines(",".join(row) + "\n" for row in text)
     except OSError as exc:
         raise TorchfricError(f"{path}: cannot write the file ({_one_line(exc)})") from None

@@ -20,7 +20,7 @@ returned `newton` step says how far it is. At θ̂:
 * information (the Gauss–Newton form of the loss Hessian) ``I = Σ_t D_tᵀ W D_t``;
 * scores ``s_t = D_tᵀ W r_t`` summed over blocks of consecutive samples, and their long-run
   covariance ``J`` (Bartlett kernel over blocks, bandwidth below);
-* ``Cov[θ̂] = I⁻¹ J I⁻¹`` with covariance.py's `_inverse` (no inverse on near-null directions;
+* ``Cov[θ̂] = I⁻¹ J I⁻¹`` with `sandwich.sandwich` (its `_inverse`: no inverse on near-null directions;
   `identifiability` names them), the gradient ``g = Σ_t s_t = ∇ℓ`` and the Gauss–Newton step
   ``I⁻¹ g`` to the criterion's optimum.
 
@@ -83,10 +83,9 @@ from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import simulate
-from .sandwich import (  # noqa: F401 - _inverse: re-exported for the tests
+from .sandwich import (
     BLOCKS,
     PEMCovariance,
-    _inverse,
     at_bound,
     identifiability,
     long_run_covariance,

@@ -114,11 +114,10 @@ def fit(
         raise TorchfricError(
             f"fit() takes a config file path or a torchfric.Config, got {type(config).__name__}"
         )
-    with torch_settings():
-        return train_on_stderr(
-            cfg, out=out, resume=resume, overwrite=overwrite, checkpoint=checkpoint, quiet=quiet,
-            device=device,
-        )  # fmt: skip
+    return train_on_stderr(  # `train` runs under `torch_settings` itself
+        cfg, out=out, resume=resume, overwrite=overwrite, checkpoint=checkpoint, quiet=quiet,
+        device=device,
+    )  # fmt: skip
 
 
 def train_on_stderr(
