@@ -41,13 +41,13 @@ from torchfric.estimators.covariance import (
     CONDITION_LIMIT,
     CORRELATION_LIMIT,
     PEMCovariance,
-    _bartlett,
     fixed_theta_loglik,
     identifiability,
     innovations,
     long_run_covariance,
     pem_covariance,
 )
+from torchfric.estimators.sandwich import _bartlett
 from torchfric.estimators.settings import EKFTuning
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import CoulombFriction, OddTanhFriction

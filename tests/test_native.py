@@ -13,10 +13,10 @@ import math
 import pytest
 import torch
 
-from torchfric.accel import CHUNK, make_chunk, native
+from torchfric.accel import CHUNK, compile_step, make_chunk, native, step_key
 from torchfric.accel.native import NativeUnavailable, make_native_chunk
-from torchfric.estimators.ekf import make_propagator, make_step
-from torchfric.estimators.ensemble import make_masked_step
+from torchfric.estimators.ekf import make_fixed_theta_step, make_propagator, make_step
+from torchfric.estimators.ensemble import make_batched_step, make_masked_step
 from torchfric.estimators.identify import EKFTuning
 from torchfric.models.arm import ArmModel
 from torchfric.models.friction import (
@@ -378,3 +378,45 @@ def test_a_compiler_that_rejects_the_fast_flags_gets_the_portable_ones(monkeypat
 
     with pytest.raises(NativeUnavailable, match="C compiler failed: .*no-such-flag"):
         make_native_chunk(other)(*args)
+
+
+# ---------------------------------------------------------------------------------------------
+# The filter with θ held: the augmented filter's state block, bit for bit
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["tanh", "lugre tanh"])
+def test_fixed_theta_step_is_the_augmented_step_with_theta_held(name: str) -> None:
+    """`make_fixed_theta_step` carries only the states' block of P; the augmented step with
+    P_θθ = 0 and no process noise on θ carries zeros in the rest. Both as generated C, two
+    members with their own θ, Q and R: every output equal to the last bit."""
+    model = _models()[name]
+    k, s, K = model.num_parameters, model.state_size, 2
+    tuning = EKFTuning(measure="position", r=(1e-3,), q_theta=0.0)
+    Q, P0_xx, H, R = tuning.matrices(k, s)
+    scales = torch.tensor([1.0, 10.0])
+    u, y = _stretch(61, 1, seed=3)
+    theta = model.get_theta().repeat(K, 1)
+    theta[1] *= 1.01
+    x0 = torch.cat([y[0, :1], torch.zeros(s - 1)]).expand(K, s)
+    p0_x = torch.diag(torch.tensor([1e-6, 1e-4, 1e-10][:s])).expand(K, s, s)
+    xs, valid = (u[:-1], y[1:]), torch.ones(60, dtype=torch.bool)
+    dt, bound = torch.tensor(1e-3), torch.tensor(1e300)
+    Qk, Rk = Q * scales[:, None, None], R * scales[:, None, None]
+
+    augmented = make_batched_step(model, 2)
+    full = compile_step(augmented, carry=2, members=True, key=step_key("test aug", augmented.key),
+                        member_consts=(False, True, False, True, False))  # fmt: skip
+    P0 = torch.zeros(K, s + k, s + k)
+    P0[:, :s, :s] = p0_x
+    (x_a, P_a), outs_a = full.chunk((torch.cat([x0, theta], 1), P0), xs, valid, (dt, Qk, H, Rk, bound))
+
+    fixed = make_fixed_theta_step(model, 2)
+    held = compile_step(fixed, carry=2, members=True, key=step_key("test fixed", fixed.key),
+                        member_consts=(False, True, True, False, True, False))  # fmt: skip
+    consts = (dt, theta, Qk[:, :s, :s].contiguous(), H[:, :s].contiguous(), Rk, bound)
+    (x_f, P_f), outs_f = held.chunk((x0.contiguous(), p0_x.contiguous()), xs, valid, consts)
+    assert held.chunk.path == "native", held.chunk.why_not_native
+    assert torch.equal(x_f, x_a[:, :s]) and torch.equal(x_a[:, s:], theta)
+    assert torch.equal(P_f, P_a[:, :s, :s]) and not P_a[:, s:].any() and not P_a[:, :, s:].any()
+    for got, want in zip(outs_f, outs_a, strict=True):
+        assert torch.equal(got, want)
+    assert bool(outs_f[3].all())

@@ -41,22 +41,20 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from ..accel import Step, iter_chunks, structure_key
+from ..accel import Step, compile_step, iter_chunks, step_key, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from .ekf import MEASUREMENTS, EKFState, update
-from .ensemble import _first_sample, make_batched_step, make_masked_step
+from .ekf import MEASUREMENTS, EKFState, make_fixed_theta_step, update
+from .ensemble import _first_sample, _keep_good
 from .observers import Callback
-from .passes import Filtering, initial_belief, measured_data
-from .sandwich import (  # noqa: F401 - _bartlett, _inverse: re-exported for the tests
+from .passes import Filtering, measured_data, state_belief
+from .sandwich import (
     BLOCKS,
     CONDITION_LIMIT,
     CORRELATION_LIMIT,
     Identifiability,
     PEMCovariance,
-    _bartlett,
-    _inverse,
     at_bound,
     identifiability,
     long_run_covariance,
@@ -99,7 +97,7 @@ def fixed_theta_loglik(
 ) -> FixedThetaLikelihood:
     """ℓ(θ_i) of the filter on ``[q, q̇(, z)]`` with θ held at each row of `thetas` `(K, k)`
     (estimation coordinates), under `tuning`'s Q and R scaled by `q_scale`, `r_scale`, in
-    blocks of the compiled step's chunk (1000 samples) or, uncompiled, of 1000 samples."""
+    blocks of `FIXED_CHUNK` samples."""
     K = torch.as_tensor(thetas).shape[0]
     scales = torch.ones(K, dtype=torch.float64)
     return _batched_loglik(model, experiments, tuning, thetas, scales * q_scale, scales * r_scale)
@@ -116,27 +114,24 @@ def _batched_loglik(
     """`fixed_theta_loglik` with a Q and an R factor per row (`(K,)` each)."""
     thetas = torch.as_tensor(thetas, dtype=torch.float64)
     K, k = thetas.shape
-    Q, P0_xx, H, R = tuning.matrices(k, model.state_size)
+    Q, P0_xx, H, R = tuning.fixed_theta_matrices(k, model.state_size)
     Qk = Q * q_scales[:, None, None]
     Rk = R * r_scales[:, None, None]
-    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile)
+    step_fn = _fixed_theta_steps(model, tuning)[1]
     data = measured_data(list(experiments), tuning.measure)
     total_n = sum(e.n for e in experiments)
     f = Filtering(data, Qk, P0_xx, H, Rk, step_fn, 1e300, Callback(), 10**9, total_n)
-    zero = torch.zeros(K, k, k, dtype=torch.float64)
     f64 = torch.float64
     good = torch.ones(K, dtype=torch.bool)
     fail_at = torch.full((K,), -1, dtype=torch.long)
     sum_nis_all = torch.zeros(K, dtype=f64)
-    block = step_fn.size if step_fn.chunk is not None else 1000  # type: ignore[attr-defined]
-    blocks: list[Tensor] = []
+    block, blocks = FIXED_CHUNK, list[Tensor]()
     bound = torch.tensor(1e300, dtype=f64)
     for exp, u, y in data:
-        x, P = initial_belief(exp, thetas, zero, P0_xx)
-        sums = [torch.zeros(K, H.shape[0], dtype=f64), torch.zeros(K, dtype=f64)]
-        sums.append(torch.zeros(K, dtype=f64))
+        x, P = state_belief(exp, K, P0_xx)
+        sums = (torch.zeros(K, H.shape[0], dtype=f64), *torch.zeros(2, K, dtype=f64))
         carry = _first_sample((x, P, good, fail_at, *sums), y[0], f)
-        consts = (torch.tensor(exp.dt, dtype=f64), Qk, H, Rk, bound)
+        consts = (torch.tensor(exp.dt, dtype=f64), thetas, Qk, H, Rk, bound)
         index = torch.arange(exp.n)
         last = torch.zeros(K, dtype=f64)
         if step_fn.chunk is not None:
@@ -181,8 +176,6 @@ def innovations(
         TorchfricError: a filter failed at its θ (with `lenient`, its e is NaN instead), or two
             channels measured.
     """
-    from ..accel import iter_chunks as chunks
-
     if len(MEASUREMENTS[tuning.measure]) != 1:
         raise TorchfricError(
             f"the prediction-error covariance measures one channel; got measure = "
@@ -192,23 +185,23 @@ def innovations(
     one = thetas.ndim == 1
     thetas = thetas[None] if one else thetas
     K, k = thetas.shape
-    Q, P0_xx, H, R = tuning.matrices(k, model.state_size)
+    Q, P0_xx, H, R = tuning.fixed_theta_matrices(k, model.state_size)
     Qk = (Q * q_scale).expand(K, *Q.shape).contiguous()
     Rk = (R * r_scale).expand(K, *R.shape).contiguous()
-    step = _fixed_theta_step(model, tuning)
+    step = _fixed_theta_steps(model, tuning)[0]
     bound = torch.tensor(1e300, dtype=torch.float64)
     out = []
     for exp, u, y in measured_data(list(experiments), tuning.measure):
-        x, P = initial_belief(exp, thetas, torch.zeros(K, k, k, dtype=torch.float64), P0_xx)
+        x, P = state_belief(exp, K, P0_xx)
         # e, and S = exp(−2ℓ − NIS − ln 2π) chunk by chunk, straight into arrays of the record's
         # length (16 bytes a sample and filter, 8 without `variances`)
         e_t = torch.empty(exp.n, K, dtype=torch.float64)
         S_t = torch.empty(exp.n, K, dtype=torch.float64) if variances else None
         x, P, e0, ll0, nis0 = vmap(_first_update, in_dims=(0, 0, None, None, 0))(x, P, y[0], H, Rk)
         bad = _keep(e_t, S_t, 0, 1, e0[None], ll0[None], nis0[None], None)
-        consts = (torch.tensor(exp.dt, dtype=torch.float64), Qk, H, Rk, bound)
+        consts = (torch.tensor(exp.dt, dtype=torch.float64), thetas, Qk, H, Rk, bound)
         if step.chunk is not None:
-            for i, n, xs, valid in chunks((u[:-1], y[1:]), step.size):
+            for i, n, xs, valid in iter_chunks((u[:-1], y[1:]), step.size):
                 (x, P), (e, nis, ll, ok) = step.chunk((x, P), xs, valid, consts)
                 bad |= _keep(e_t, S_t, 1 + i, n, e[:n, :, 0], ll[:n], nis[:n], ok[:n])
         else:
@@ -242,23 +235,34 @@ def _first_update(x: Tensor, P: Tensor, y0: Tensor, H: Tensor, R: Tensor) -> tup
     return state.x, state.P, inn.e.reshape(()), inn.loglik, inn.nis
 
 
-def _fixed_theta_step(model: ArmModel, tuning: EKFTuning) -> Step:
-    """The batched fixed-θ step with per-sample outputs (e, NIS, ℓ, ok), made once (`_STEPS`)."""
-    from ..accel import compile_step, step_key
-
+def _fixed_theta_steps(model: ArmModel, tuning: EKFTuning) -> tuple[Step, Step]:
+    """The batched fixed-θ step (`make_fixed_theta_step`) with per-sample outputs (e, NIS, ℓ,
+    ok), and the same with the ensemble's masked bookkeeping (sums only, `_keep_good`), made
+    once per model (`_STEPS`)."""
     key = (structure_key(model), tuning.substeps, tuning.compile)
     if key not in _STEPS:
-        batched = make_batched_step(model, tuning.substeps)
-        step = Step(batched) if not tuning.compile else compile_step(
-            batched, carry=2, members=True, member_consts=(False, True, False, True, False),
-            key=step_key("fixed-θ batch", batched.key),  # type: ignore[attr-defined]
+        batched = make_fixed_theta_step(model, tuning.substeps)
+
+        def masked(x, P, good, fail_at, sum_e2, sum_nis, loglik, j, u, y, *consts):  # type: ignore[no-untyped-def]
+            carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
+            return _keep_good(carry, j, *batched(x, P, u, y, *consts))
+
+        members = (False, True, True, False, True, False)  # dt, θ, Q, H, R, bound
+        steps = tuple(
+            compile_step(fn, carry=carry, size=FIXED_CHUNK, members=True, member_consts=members,
+                         key=step_key(name, batched.key))  # type: ignore[attr-defined]
+            if tuning.compile else Step(fn)
+            for fn, carry, name in ((batched, 2, "fixed-θ batch"), (masked, 7, "fixed-θ masked"))
         )  # fmt: skip
         _STEPS.clear()
-        _STEPS[key] = step
+        _STEPS[key] = steps
     return _STEPS[key]
 
 
-_STEPS: dict[Any, Step] = {}  # the last model's batched fixed-θ step (built once per run)
+# Samples per call of the fixed-θ steps' C (not the numbers): 8 filters over 1000 samples took
+# less than the 2 ms from which `torchfric.accel.native` splits members across the cores.
+FIXED_CHUNK = 8192
+_STEPS: dict[Any, tuple[Step, Step]] = {}  # the last model's fixed-θ steps (built once per run)
 
 
 def pem_covariance(
@@ -455,7 +459,7 @@ def pem_refine(
     The EKF's passes end near, not at, the maximum of the fixed-θ likelihood (measured: the
     Newton step from a converged run's θ was up to 9 σ for curve parameters and 4–5 σ for b);
     the σ describe the spread of that maximum, so they can only cover the truth from there.
-    Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (the pseudo-inverse of `_inverse`:
+    Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (the pseudo-inverse of `sandwich._inverse`:
     directions the data do not determine are not moved), whole or halved up to four times,
     whichever first raises ℓ (the five filtered as one batch); when none does,
     Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`;

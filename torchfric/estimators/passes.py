@@ -64,6 +64,7 @@ __all__ = [
     "measurements",
     "measured_data",
     "initial_belief",
+    "state_belief",
     "belief",
 ]
 
@@ -387,6 +388,12 @@ def initial_belief(
     zero. A dynamic model's P0_xx `(3, 3)` adds its bristle state, started at rest (z = 0)."""
     x0 = torch.stack([exp.q[0], exp.qdot[0] if exp.qdot is not None else exp.q.new_zeros(())])
     return belief(x0.to(torch.float64), theta, P_theta, P0_xx)
+
+
+def state_belief(exp: Experiment, K: int, P0_xx: Tensor) -> tuple[Tensor, Tensor]:
+    """`initial_belief`'s state block for K filters with θ held: x `(K, s)`, P `(K, s, s)`."""
+    none = torch.zeros(K, 0, dtype=torch.float64)
+    return initial_belief(exp, none, none.reshape(K, 0, 0), P0_xx)
 
 
 def belief(x0: Tensor, theta: Tensor, P_theta: Tensor, P0_xx: Tensor) -> tuple[Tensor, Tensor]:

@@ -223,6 +223,12 @@ class EKFTuning:
         R = torch.diag(torch.as_tensor(self.r, dtype=torch.float64))
         return Q, P0_xx, H, R
 
+    def fixed_theta_matrices(self, k: int, states: int = 2) -> tuple[Tensor, ...]:
+        """`matrices` for the filter with θ held (`make_fixed_theta_step`): the state blocks
+        ``(Q (s,s), P0_xx (s,s), H (m,s), R (m,m))``; θ's process noise does not apply."""
+        Q, P0_xx, H, R = self.matrices(k, states)
+        return Q[:states, :states], P0_xx, H[:, :states].contiguous(), R
+
     def initial_P_theta(self, model: ArmModel, theta: Tensor) -> Tensor:
         """P_θθ at the start for θ `(..., k)` (a batch of starts gives `(..., k, k)`); with
         `p0_relative` (or relative `units`), each start's linearly stored entries are scaled
