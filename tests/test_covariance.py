@@ -82,7 +82,7 @@ def _short_record(model: ArmModel, n: int, seed: int) -> Experiment:
     u = torch.sin(2 * math.pi * 4.0 * t) + 0.6 * torch.sin(2 * math.pi * 11.0 * t + 1.0)
     u = u + 0.2 * torch.randn(n, generator=g)
     with torch.no_grad():
-        x = simulate(model, t, u, torch.zeros(2), substeps=4)
+        x = simulate(model, t, u, torch.zeros(2), substeps=4, engine="compiled")
     return make_experiment(t, u, x[:, 0] + SIGMA_Q * torch.randn(n, generator=g), name="short")
 
 
