@@ -163,10 +163,10 @@ def innovations(
     variances: bool = True,
 ) -> list[tuple[Tensor, Tensor]]:
     """Per experiment, the one-step innovations ``e_t`` and their variances ``S_t`` of the
-    fixed-θ filter (θ held by ``P_θθ = 0``) with one measured channel (`tuning.measure`
+    fixed-θ filter (θ held: `make_fixed_theta_step`) with one measured channel (`tuning.measure`
     "position" or "velocity"): `(n,)` each for θ `(k,)`; for K filters at once, θ the rows of
     `thetas` `(K, k)`, `(n, K)`. From the per-sample outputs of the batched step
-    (`make_batched_step`: compiled, four filters per SIMD vector of the generated C, split
+    (compiled, four filters per SIMD vector of the generated C, split
     across the cores; ``S_t = exp(−2 ℓ_t − NIS_t − ln 2π)``, exact for one channel); each
     filter's numbers are those of its own single filter (the same arithmetic).
 
