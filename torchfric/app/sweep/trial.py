@@ -122,15 +122,14 @@ def run_trial(
     """Trial `number`: `spec`'s config with `values`, trained quietly in ``DIR/trials/NNNN``.
     Returns its score, its `PassReports` and the `TrainResult`. Raises `TorchfricError` as
     the run does."""
-    from ..run import torch_settings, train
+    from ..run import train  # which runs under `torch_settings` itself
 
     sets = [f"{key}={toml_value(value)}" for key, value in values.items()]
     cfg = spec.base().with_overrides(sets)
     reports = PassReports(report, spec.kind)
-    with torch_settings():
-        result = train(
-            cfg, run_dir=trial_dir(spec.out, number), say=lambda msg: None, callbacks=(reports,)
-        )
+    result = train(
+        cfg, run_dir=trial_dir(spec.out, number), say=lambda msg: None, callbacks=(reports,)
+    )
     score = trial_score(result, spec.kind)
     if reports.pruned_at is None and (score is None or math.isnan(score)):
         raise TorchfricError("the run finished without a score (no pass completed)")
