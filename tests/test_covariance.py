@@ -258,6 +258,31 @@ def test_gradient_matches_autograd(tanh2: Exact) -> None:
     assert float((c.pem.gradient - grad).norm() / grad.norm()) < 1e-6
 
 
+def test_samples_left_out_of_the_criterion_are_not_in_its_sums(tanh2: Exact) -> None:
+    """`moving`: the masked samples' innovations are 0 and the rest unchanged bit for bit, so
+    ℓ, the information and the gradient are the exact ones summed over the kept samples; an
+    all-True mask is no mask."""
+    c = tanh2
+    keep = torch.ones(c.exp.n, dtype=torch.bool)
+    keep[100:180] = False
+    keep[300:] = False
+    ((e_all, _),) = innovations(c.model, [c.exp], c.tuning, c.theta)
+    ((e, S),) = innovations(c.model, [c.exp], c.tuning, c.theta, moving=[keep])
+    assert bool((e[~keep] == 0).all()) and torch.equal(e[keep], e_all[keep])
+    (e1, _), (e2, _) = innovations(c.model, [c.exp, c.exp], c.tuning, c.theta, moving=[keep, ~keep])
+    assert torch.equal(e1, e) and torch.equal(e2, torch.where(keep, 0.0, e_all))  # each its own
+    pem = pem_covariance(c.model, [c.exp], c.tuning, c.theta, moving=[keep])
+    w = keep.to(torch.float64)
+    assert pem.loglik == pytest.approx(float(-0.5 * (w * c.e**2 / c.S).sum()), rel=1e-9)
+    info = (c.De * (w / c.S)[:, None]).T @ c.De
+    assert float(torch.linalg.matrix_norm(pem.information - info) / torch.linalg.matrix_norm(info)) < 1e-6
+    grad = (c.scores * w[:, None]).sum(0)
+    assert float((pem.gradient - grad).norm() / grad.norm()) < 1e-6
+    assert not torch.allclose(pem.cov, c.pem.cov, rtol=1e-3)  # the left-out samples mattered
+    whole = pem_covariance(c.model, [c.exp], c.tuning, c.theta, moving=[torch.ones_like(keep)])
+    assert torch.equal(whole.cov, c.pem.cov) and whole.loglik == c.pem.loglik
+
+
 def test_newton_step_matches_the_exact_one(tanh2: Exact) -> None:
     c = tanh2
     # The scaled information's smallest eigenvalue is 2e-4 here (the steep neuron's W1 against

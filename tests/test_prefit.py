@@ -197,3 +197,23 @@ def test_generated_rows_equal_torch_rows_and_keep_the_starts_apart(
         alone, cost, its = _levenberg_marquardt(model, thetas[j : j + 1], q, v, a, u, 12, v_stick)
         torch.testing.assert_close(got[j], alone[0], rtol=1e-12, atol=1e-14)
         assert int(used[j]) == int(its[0])
+
+
+def test_moving_samples_are_the_prefits_rule_over_all_records() -> None:
+    """`moving_samples`: |q̇| > 2 % of the largest |q̇| of all records (zero-phase q̇ at the
+    pre-fit's cut-off). A ramp at 1 rad/s, a 0.5-s stop, a ramp at 0.5 rad/s; a second record
+    creeping at 0.01 rad/s is stuck by the first record's scale."""
+    from torchfric.data.experiment import make_experiment
+    from torchfric.estimators.prefit import moving_samples
+
+    dt = 1e-3
+    t = torch.arange(3000, dtype=torch.float64) * dt
+    speed = torch.where(t < 1.0, 1.0, torch.where(t < 1.5, 0.0, 0.5))
+    q = torch.cumsum(speed, 0) * dt
+    creep = make_experiment(t, torch.zeros_like(t), 0.01 * t, name="creep")
+    moving, slow = moving_samples([make_experiment(t, torch.zeros_like(t), q, name="a"), creep])
+    assert bool(moving[100:950].all()) and bool(moving[1600:2900].all())
+    assert not bool(moving[1100:1400].any())  # the stop, away from the filter's edges
+    assert not bool(slow.any())
+    (alone,) = moving_samples([creep])  # on its own scale the creep moves
+    assert bool(alone[100:2900].all())

@@ -6,11 +6,10 @@ axis its σ were 10–1000× narrower than the real error. What a run reports in
 (`torchfric.app.run.confidence`) is built here, with θ held fixed (``P_θθ = 0``) and q as the one
 measured channel:
 
-1. `noise_model`: the Q and R factors under which the fixed-θ filter's innovations are most
-   likely (a grid, one batch of the ensemble's compiled masked step), up to one sample's
-   process noise on q of R/100 (`NOISE_STEP_LIMIT`).
+1. `noise_model`: the likeliest Q and R factors of the fixed-θ filter (a grid, one batch), up
+   to one sample's process noise on q of R/100 (`NOISE_STEP_LIMIT`).
 2. `innovations`: per sample the innovation ``e_t(θ)`` and its variance ``S_t(θ)`` (a batch of
-   fixed-θ filters, four per SIMD vector; ``S_t`` from their NIS and log-likelihood outputs).
+   fixed-θ filters; ``S_t`` from their NIS and log-likelihood outputs).
 3. `pem_covariance`: the criterion ``V(θ) = Σ_t e_t²/S_t``; sensitivities ``∂e_t/∂θ`` by central
    differences of 2k + 1 filters; per-sample scores, the Gauss–Newton information
    ``I = Σ ∂eᵀ∂e / S`` (positive semi-definite by construction), the long-run covariance J of
@@ -21,9 +20,9 @@ measured channel:
 4. `pem_refine`: Gauss–Newton steps on V from the kept θ to the prediction-error estimate,
    whose spread that covariance describes.
 
-`tests/test_covariance.py` checks all of it against a 2-state EKF written from scratch and
-differentiated by autograd. Directions the data cannot separate show up as a near-singular
-``I``; `identifiability` names them.
+A static model's criterion leaves out the samples where the axis sticks (`moving`, from
+`torchfric.estimators.prefit.moving_samples`). `tests/test_covariance.py` checks all of it
+against a 2-state EKF written from scratch and differentiated by autograd.
 
 Why this size: the innovations, their sensitivities and the sums over them stream a long
 record block by block together; the statistics they feed are apart (`sandwich`).
@@ -161,6 +160,7 @@ def innovations(
     r_scale: float = 1.0,
     lenient: bool = False,
     variances: bool = True,
+    moving: Sequence[Tensor] | None = None,
 ) -> list[tuple[Tensor, Tensor]]:
     """Per experiment, the one-step innovations ``e_t`` and their variances ``S_t`` of the
     fixed-θ filter (θ held: `make_fixed_theta_step`) with one measured channel (`tuning.measure`
@@ -170,7 +170,8 @@ def innovations(
     across the cores; ``S_t = exp(−2 ℓ_t − NIS_t − ln 2π)``, exact for one channel); each
     filter's numbers are those of its own single filter (the same arithmetic).
 
-    Without `variances`, S is not kept (an empty tensor in its place).
+    Without `variances`, S is not kept (an empty tensor in its place). `moving` (per
+    experiment, bool `(n,)`): the samples in the criterion; e is 0 at the others.
 
     Raises:
         TorchfricError: a filter failed at its θ (with `lenient`, its e is NaN instead), or two
@@ -191,7 +192,7 @@ def innovations(
     step = _fixed_theta_steps(model, tuning)[0]
     bound = torch.tensor(1e300, dtype=torch.float64)
     out = []
-    for exp, u, y in measured_data(list(experiments), tuning.measure):
+    for r, (exp, u, y) in enumerate(measured_data(list(experiments), tuning.measure)):
         x, P = state_belief(exp, K, P0_xx)
         # e, and S = exp(−2ℓ − NIS − ln 2π) chunk by chunk, straight into arrays of the record's
         # length (16 bytes a sample and filter, 8 without `variances`)
@@ -213,6 +214,8 @@ def innovations(
                 f"the fixed-θ filter failed on {exp.name!r} at this θ, so the likelihood has no "
                 "derivatives there"
             )
+        if moving is not None:
+            e_t[~moving[r]] = 0.0
         e_t[:, bad] = math.nan
         S = S_t if S_t is not None else e_t[:0]
         out.append((e_t[:, 0], S[:, 0]) if one else (e_t, S))
@@ -274,6 +277,7 @@ def pem_covariance(
     q_scale: float = 1.0,
     r_scale: float = 1.0,
     block: int | None = None,
+    moving: Sequence[Tensor] | None = None,
 ) -> PEMCovariance:
     """The sandwich covariance of θ̂ = `theta` `(k,)` (module docstring).
 
@@ -283,12 +287,8 @@ def pem_covariance(
     ``h_j = 1e-4 · max(|θ_j|, 1)`` in estimation coordinates (first derivatives: truncation
     ~1e-8 relative, far above rounding). From them, per sample, the score ``−e_t ∂e_t / S_t``
     and the Gauss–Newton information ``I = Σ_t ∂e_tᵀ∂e_t / S_t``, positive semi-definite by
-    construction. Two forms were measured and dropped: second differences of the Gaussian
-    log-likelihood gave negative eigenvalues along the curve's flat directions (a
-    pseudo-inverse then dropped the variance of b they carried), and its Fisher form with the
-    ``∂S`` terms predicted gains 7× too large, since with the tuning's R far above the data's
-    noise the ``ln S`` part of that likelihood is not concave. The sandwich does not depend on
-    the scale of S: I and J scale alike.
+    construction (the forms measured and dropped: docs/estimators.md). The sandwich does not
+    depend on the scale of S: I and J scale alike.
 
     Args:
         model, experiments, tuning: the run's model, identification records and EKF tuning
@@ -296,6 +296,7 @@ def pem_covariance(
         theta: θ̂ in estimation coordinates.
         block: samples per block of the score's long-run covariance (None: about `BLOCKS`
             blocks over all records).
+        moving: per experiment, the samples in V (`innovations`); None: all.
 
     Raises:
         TorchfricError: the fixed-θ filter fails at θ̂ or next to it.
@@ -304,9 +305,8 @@ def pem_covariance(
     k = theta.numel()
     names = model.theta_names
     h = 1e-4 * torch.maximum(theta.abs(), torch.ones_like(theta))
-    run = functools.partial(
-        innovations, model, experiments, tuning, q_scale=q_scale, r_scale=r_scale
-    )
+    run = functools.partial(innovations, model, experiments, tuning, q_scale=q_scale,
+                            r_scale=r_scale, moving=moving)  # fmt: skip
     base = run(theta)
     info, block_scores, segment, loglik, samples = score_sums(
         base, _sensitivities(run, theta, h), block
@@ -339,10 +339,9 @@ def pem_covariance(
 
 
 def _sensitivities(run: Any, theta: Tensor, h: Tensor) -> list[Tensor]:
-    """Per experiment ``∂e_t/∂θ`` `(n, k)` by central differences: column j from the
-    innovations of the filters at ``θ ± h_j e_j`` (`innovations`), `_GROUP` columns' filters
-    in one batch, each group's columns taken as soon as they are there (on a 20-minute record
-    at 1 kHz and k = 8: 8 filters' innovations held at a time, 0.15 GB, rather than 2k)."""
+    """Per experiment ``∂e_t/∂θ`` `(n, k)` by central differences: column j from the filters
+    at ``θ ± h_j e_j`` (`innovations`), `_GROUP` columns' filters a batch, taken at once (a
+    20-minute record, k = 8: 8 filters' innovations held, 0.15 GB, rather than 2k)."""
     k = h.numel()
     De: list[Tensor] = []
     for j0 in range(0, k, _GROUP):
@@ -368,20 +367,20 @@ def _loglik(
     thetas: Tensor,
     q_scale: float,
     r_scale: float,
+    moving: Sequence[Tensor] | None,
 ) -> Tensor:
     """ℓ = −½ V at each row of `thetas` `(K, k)`, `2 _GROUP` filters a batch; −inf on failure."""
     out = []
     for part in torch.split(thetas, 2 * _GROUP):
         parts = innovations(model, experiments, tuning, part, q_scale=q_scale, r_scale=r_scale,
-                            lenient=True)  # fmt: skip
+                            lenient=True, moving=moving)  # fmt: skip
         ll = sum(-0.5 * (e * e / S).sum(0) for e, S in parts)
         out.append(torch.where(torch.isfinite(ll), ll, -math.inf))
     return torch.cat(out)
 
 
 NOISE_GRID_R = tuple(10.0**p for p in range(-8, 1))
-"""Factors on the tuning's R tried by `noise_model` (1e-8 … 1: the paper's R is thousands of
-times an encoder's quantisation variance)."""
+"""Factors on the tuning's R tried by `noise_model` (the paper's R: 1000s × an encoder's)."""
 NOISE_GRID_Q = tuple(10.0**p for p in range(-3, 4))
 """Factors on the tuning's Q tried by `noise_model`."""
 NOISE_STEP_LIMIT = 1e-2
@@ -410,10 +409,8 @@ def noise_model(
     with a 1 µm encoder, M and b were 10–160 σ off on 7 of 20 seeds, docs/results.md), filtered
     as one batch, ranked by the Gaussian log-likelihood (best first; failed filters left out).
 
-    The criterion and its covariance are taken under this noise model: under the tuning's R
-    (the paper's 1e-3 rad², an encoder's ~1e-7) the one-step prediction is a long open-loop
-    simulation and a Gauss–Newton step of a few σ lost 100 nats where it predicted a gain of 4;
-    under the likelihood's own noise levels the innovations are close to white."""
+    The criterion and its covariance are taken under it: under the tuning's R the one-step
+    prediction is a long simulation, far from quadratic (docs/estimators.md)."""
     ratio = step_ratio(tuning, experiments, q_scale, r_scale)  # of the tuning's own Q and R
     whole = [(q, r) for q in NOISE_GRID_Q for r in NOISE_GRID_R]
     grid = [(q, r) for q, r in whole if q / r * ratio <= NOISE_STEP_LIMIT * (1 + 1e-9)]
@@ -453,6 +450,7 @@ def pem_refine(
     iterations: int = 4,
     min_gain: float = 0.05,
     start: PEMCovariance | None = None,
+    moving: Sequence[Tensor] | None = None,
 ) -> tuple[Tensor, PEMCovariance, list[float]]:
     """Newton steps on ℓ from `theta` to the prediction-error estimate, and its covariance.
 
@@ -469,11 +467,12 @@ def pem_refine(
     box (``tuning.theta_bound``): along a direction the data barely see, ℓ keeps rising by
     rounding-sized amounts (the rig's LuGre config walked there).
 
-    `start`: the covariance at `theta` when the caller has it already (not computed again).
+    `start`: the covariance at `theta` when the caller has it already (not computed again);
+    `moving`: the samples in V (`innovations`).
 
     Returns ``(θ, covariance at θ, ℓ after each accepted step, the first at the start)``."""
     cov = start or pem_covariance(
-        model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale
+        model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale, moving=moving
     )
     theta = cov.theta
     trace = [cov.loglik]
@@ -487,7 +486,7 @@ def pem_refine(
             trials = trials[(trials.abs() < 0.5 * tuning.theta_bound).all(1)]
             if not trials.shape[0]:
                 continue
-            ll = _loglik(model, experiments, tuning, trials, q_scale, r_scale)
+            ll = _loglik(model, experiments, tuning, trials, q_scale, r_scale, moving)
             raised = torch.nonzero(ll > cov.loglik).flatten()
             if raised.numel():
                 trial = trials[int(raised[0])]
@@ -495,6 +494,7 @@ def pem_refine(
         if trial is None:
             break
         theta = trial
-        cov = pem_covariance(model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+        cov = pem_covariance(model, experiments, tuning, theta, q_scale=q_scale,
+                             r_scale=r_scale, moving=moving)  # fmt: skip
         trace.append(cov.loglik)
     return theta, cov, trace

@@ -99,6 +99,23 @@ def _regression_data(
     return q[moving], v[moving], a[moving], u[moving]
 
 
+def moving_samples(
+    experiments: Sequence[Experiment], *, cutoff_hz: float | None = None,
+    stick_fraction: float = 0.02,
+) -> list[Tensor]:  # fmt: skip
+    """Per experiment, `(n,)` bool: the samples where the axis moves by the pre-fit's rule,
+    ``|q̇| > stick_fraction · max |q̇|`` with q̇ the zero-phase derivative at the pre-fit's cut-off
+    (the maximum over all experiments). A static friction curve is a torque at a speed; while
+    the axis sticks its friction is whatever balances the other forces, so a static model's
+    errors there measure its failure to stick, not M or b (the prediction-error criterion
+    leaves those samples out, `torchfric.estimators.covariance`)."""
+    exps = list(experiments)
+    cutoff = default_cutoff_hz(max(e.dt for e in exps)) if cutoff_hz is None else cutoff_hz
+    speeds = [zero_phase_derivative(e.q, e.dt, cutoff).abs() for e in exps]
+    v_max = max(float(v.max()) for v in speeds)
+    return [v > stick_fraction * v_max for v in speeds]
+
+
 def _linear_skeleton(
     model: ArmModel, q: Tensor, v: Tensor, a: Tensor, u: Tensor
 ) -> dict[str, float]:

@@ -11,7 +11,8 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
    sample stays below a hundredth of R (``step_ratio``, `NOISE_STEP_LIMIT`);
 2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
    (`pem_refine`), kept only when it simulates the validation records (else the
-   identification records) no worse than the kept θ by 0.1 point; otherwise θ stays;
+   identification records) no worse than the kept θ by 0.1 point; otherwise θ stays. A static
+   model's criterion leaves out the samples where the axis sticks (`_moving`);
 3. the sandwich covariance at the reported θ (`pem_covariance`) plus the outer product of
    its offset from the run's other estimate (`offset_covariance`): the optimum's when the
    polish was rejected, the filter's kept pass when it was kept.
@@ -42,6 +43,7 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
+from ...estimators.prefit import moving_samples
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
@@ -86,11 +88,14 @@ def attach_covariance(
         ranked = noise_model(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     except TorchfricError as err:
         ranked, failure = [], err
+    moving = _moving(final, train)
     for q_scale, r_scale in ranked[:3]:  # the likeliest noise model whose filter stays healthy
         try:
-            at_kept = pem_covariance(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+            at_kept = pem_covariance(final, train, tuning, theta, q_scale=q_scale,
+                                     r_scale=r_scale, moving=moving)  # fmt: skip
             polished, pem, trace = pem_refine(final, train, tuning, theta, q_scale=q_scale,
-                                              r_scale=r_scale, iterations=8, start=at_kept)  # fmt: skip
+                                              r_scale=r_scale, iterations=8, start=at_kept,
+                                              moving=moving)  # fmt: skip
             break
         except TorchfricError as err:
             failure = err
@@ -128,6 +133,10 @@ def attach_covariance(
     state["P_theta"] = pem.cov if offset is None else offset_covariance(pem.cov, offset)
     noise = _noise_dict(tuning, q_scale, r_scale, train)
     extra["covariance"] = {**pem.to_dict(), "noise_model": noise}
+    if moving is not None:
+        extra["covariance"]["stuck_left_out"] = (
+            1.0 - sum(int(m.sum()) for m in moving) / pem.samples
+        )
     if offset is not None:
         where = "offset_to_filter" if "polished" in extra else "offset_to_optimum"
         extra["covariance"][where] = offset.tolist()
@@ -138,6 +147,20 @@ def attach_covariance(
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth})"
         + ("" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)")
     )
+
+
+def _moving(model: ArmModel, train: list[Experiment]) -> list[torch.Tensor] | None:
+    """A static model's criterion leaves out the samples where the axis sticks
+    (`moving_samples`: a static curve cannot hold a stuck axis, and its errors there biased M,
+    docs/estimators.md); a dynamic model's bristles describe the stick, so it keeps them. None
+    where the records have no positions or too few moving samples."""
+    if model.state_size != 2 or any(e.q is None for e in train):
+        return None
+    try:
+        moving = moving_samples(train)
+    except TorchfricError:  # a record too short for the zero-phase filter: keep every sample
+        return None
+    return moving if sum(int(m.sum()) for m in moving) >= 50 * model.num_parameters else None
 
 
 def _noise_dict(tuning: Any, q_scale: float, r_scale: float, train: list[Experiment]) -> dict:
