@@ -675,7 +675,7 @@ def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # typ
 
     monkeypatch.setattr(covariance, "pem_covariance", lambda m, e, t, theta, **kw: at(theta))
     monkeypatch.setattr(covariance, "_loglik",
-                        lambda m, e, t, thetas, q, r: torch.tensor([loglik(x) for x in thetas]))  # fmt: skip
+                        lambda m, e, t, thetas, q, r, moving: torch.tensor([loglik(x) for x in thetas]))  # fmt: skip
     start = torch.tensor([0.0, 1.0], dtype=torch.float64)
     for bound, reaches in ((1e6, True), (20.0, False)):
         tuning = EKFTuning(theta_bound=bound)

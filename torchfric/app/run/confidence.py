@@ -90,12 +90,11 @@ def attach_covariance(
         ranked, failure = [], err
     moving = _moving(final, train)
     for q_scale, r_scale in ranked[:3]:  # the likeliest noise model whose filter stays healthy
+        how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving}
         try:
-            at_kept = pem_covariance(final, train, tuning, theta, q_scale=q_scale,
-                                     r_scale=r_scale, moving=moving)  # fmt: skip
-            polished, pem, trace = pem_refine(final, train, tuning, theta, q_scale=q_scale,
-                                              r_scale=r_scale, iterations=8, start=at_kept,
-                                              moving=moving)  # fmt: skip
+            at_kept = pem_covariance(final, train, tuning, theta, **how)
+            polished, pem, trace = pem_refine(final, train, tuning, theta, iterations=8,
+                                              start=at_kept, **how)  # fmt: skip
             break
         except TorchfricError as err:
             failure = err
@@ -133,20 +132,16 @@ def attach_covariance(
     state["P_theta"] = pem.cov if offset is None else offset_covariance(pem.cov, offset)
     noise = _noise_dict(tuning, q_scale, r_scale, train)
     extra["covariance"] = {**pem.to_dict(), "noise_model": noise}
-    if moving is not None:
-        extra["covariance"]["stuck_left_out"] = (
-            1.0 - sum(int(m.sum()) for m in moving) / pem.samples
-        )
+    if moving is not None:  # the share of samples left out of the criterion
+        extra["covariance"]["stuck_left_out"] = 1 - sum(int(m.sum()) for m in moving) / pem.samples
     if offset is not None:
         where = "offset_to_filter" if "polished" in extra else "offset_to_optimum"
         extra["covariance"][where] = offset.tolist()
     ident = run_identifiability(final, pem, train)
     extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
-    say(
-        f"  covariance: prediction-error sandwich over {pem.samples} samples "
-        f"({pem.blocks} blocks, bandwidth {pem.bandwidth})"
-        + ("" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)")
-    )
+    notes = "" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)"
+    say(f"  covariance: prediction-error sandwich over {pem.samples} samples "
+        f"({pem.blocks} blocks, bandwidth {pem.bandwidth}){notes}")  # fmt: skip
 
 
 def _moving(model: ArmModel, train: list[Experiment]) -> list[torch.Tensor] | None:
