@@ -58,7 +58,7 @@ def _static_record(quantised: bool = True) -> Experiment:
     u = torch.as_tensor(excitation("identification", duration=30.0, seed=2)[:N_SAMPLES])
     t = torch.arange(N_SAMPLES, dtype=torch.float64) * rig.dt
     with torch.no_grad():
-        x = simulate(_true_static(), t, u, torch.zeros(2))
+        x = simulate(_true_static(), t, u, torch.zeros(2), engine="compiled")
     if not quantised:  # exact q and q̇
         return make_experiment(t, u, x[:, 0], x[:, 1], name="exact")
     q = torch.round(x[:, 0] / rig.quantum) * rig.quantum
