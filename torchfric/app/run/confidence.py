@@ -140,8 +140,15 @@ def attach_covariance(
     ident = run_identifiability(final, pem, train)
     extra["identifiability"] = {**ident.to_dict(), "messages": _messages(ident)}
     notes = "" if ident.ok else f"; {len(_messages(ident))} identifiability note(s)"
+    notes += _stuck_note(extra["covariance"])
     say(f"  covariance: prediction-error sandwich over {pem.samples} samples "
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth}){notes}")  # fmt: skip
+
+
+def _stuck_note(cov: dict[str, Any]) -> str:
+    """The progress line's note of the samples left out of the criterion, if any."""
+    stuck = cov.get("stuck_left_out", 0.0)
+    return f"; {stuck:.0%} of the samples stuck, left out" if stuck else ""
 
 
 def _moving(model: ArmModel, train: list[Experiment]) -> list[torch.Tensor] | None:
