@@ -36,7 +36,8 @@ __all__ = [
 
 SIGMA_SOURCES: dict[str, str] = {
     "sandwich": "the run's sandwich covariance of its one-step prediction error at this θ "
-    "(I⁻¹JI⁻¹ over all identification records), plus the distance to the run's other estimate "
+    "(I⁻¹JI⁻¹ over the identification records; a static model's over the samples where the "
+    "axis moves), plus the distance to the run's other estimate "
     "where the kept pass and the likelihood's optimum differ",
     "sandwich_simulation": "the run's sandwich covariance of its simulation error at this θ "
     "(output error)",
