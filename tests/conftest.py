@@ -37,3 +37,18 @@ def native_cache(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pat
     monkeypatch.setattr(native.cache, "_WARNED", set())
     monkeypatch.setattr(native.cache, "_PRIVATE", None)
     return tmp_path / "cache"
+
+
+@pytest.fixture(scope="session")
+def _worker_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    return tmp_path_factory.mktemp("native_cache")
+
+
+@pytest.fixture
+def worker_cache(_worker_cache_dir: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
+    """A compiled-code cache (``TORCHFRIC_CACHE``) for the test worker's whole session, the
+    native path on: each model's C is traced and built once per worker, not once per test
+    (about 3 s a library). Tests of the cache itself take `native_cache`."""
+    monkeypatch.setenv("TORCHFRIC_CACHE", str(_worker_cache_dir))
+    monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
+    return _worker_cache_dir

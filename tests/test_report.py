@@ -208,7 +208,7 @@ def _train(tmp: pathlib.Path) -> pathlib.Path:
 
 
 def test_a_runs_report_is_self_contained_and_shows_the_runs_numbers(
-    tmp_path: pathlib.Path, native_cache: pathlib.Path
+    tmp_path: pathlib.Path, worker_cache: pathlib.Path
 ) -> None:
     run = _train(tmp_path)
     metrics = json.loads((run / "metrics.json").read_text())

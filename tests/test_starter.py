@@ -69,8 +69,9 @@ def _fails(capsys: pytest.CaptureFixture[str], argv: list[str], *expected: str) 
 
 
 @pytest.fixture
-def user(tmp_path: pathlib.Path, native_cache: pathlib.Path, monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
-    """A user's folder as the working directory (the compiled-code cache of the test's own)."""
+def user(tmp_path: pathlib.Path, worker_cache: pathlib.Path, monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
+    """A user's folder as the working directory (the compiled-code cache of the worker's own,
+    outside the folder and the user's home)."""
     folder = tmp_path / "work"
     folder.mkdir()
     monkeypatch.chdir(folder)

@@ -105,7 +105,7 @@ def _session_groups(logdir: pathlib.Path) -> dict[str, tuple[dict, dict[str, flo
 
 
 def test_a_runs_events_hold_its_config_hparams_named_channels_and_figures(
-    tmp_path: pathlib.Path, native_cache: pathlib.Path
+    tmp_path: pathlib.Path, worker_cache: pathlib.Path
 ) -> None:
     from tensorboard.plugins.hparams import metadata
 
@@ -159,7 +159,7 @@ def test_a_runs_events_hold_its_config_hparams_named_channels_and_figures(
 
 
 def test_every_ensemble_member_has_its_trajectory_over_every_pass(
-    tmp_path: pathlib.Path, native_cache: pathlib.Path
+    tmp_path: pathlib.Path, worker_cache: pathlib.Path
 ) -> None:
     from tensorboard.plugins.custom_scalar import layout_pb2
 
