@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 import torch
 
@@ -39,6 +41,33 @@ def test_prefit_recovers_inertia_and_friction(
     # odd by construction, and the original model untouched
     torch.testing.assert_close(result.model.friction(-v), -result.model.friction(v))
     assert float(arm.inertia) == pytest.approx(0.1)
+
+
+def test_a_long_records_rows_are_thinned_to_the_cap_and_still_recover_the_rig(
+    identification, monkeypatch
+) -> None:
+    """Above `PREFIT_ROWS` rows the fit keeps every s-th: here the rig's 5.4 k rows thinned to
+    at most 1500 (every 4th) still give its inertia and curve within the full fit's bounds; at
+    or below the cap nothing changes, bit for bit."""
+    module = sys.modules["torchfric.estimators.prefit"]  # (the package exports the function)
+    arm = ArmModel(make_friction("tanh", 3), inertia=0.1, viscous=0.01, c_m=16.0)
+    full = prefit(arm, identification)
+    monkeypatch.setattr(module, "PREFIT_ROWS", full.samples)
+    same = prefit(arm, identification)
+    assert same.samples == full.samples
+    assert torch.equal(same.model.get_theta(), full.model.get_theta())
+    monkeypatch.setattr(module, "PREFIT_ROWS", 1500)
+    thin = prefit(arm, identification)
+    assert thin.samples <= 1500 and thin.samples == -(-full.samples // (-(-full.samples // 1500)))
+    truth = RigParameters()
+    assert float(thin.model.inertia) == pytest.approx(truth.inertia, rel=0.02)
+    assert float(thin.model.inertia) == pytest.approx(float(full.model.inertia), rel=0.005)
+    v = torch.linspace(-9.5, 9.5, 381)
+    v = v[v.abs() > 0.2]
+    ref = torch.as_tensor(truth.steady_state_friction(v.numpy()))
+    with torch.no_grad():
+        err = (thin.model.friction_torque(v) - ref).pow(2).mean().sqrt() / ref.abs().max()
+    assert float(err) < 0.02
 
 
 def test_prefit_keeps_slopes_finite(identification) -> None:

@@ -21,7 +21,7 @@ from ...data import Experiment, data_warnings, load_segments, make_experiment, p
 from ...data.velocity import settling_samples
 from ...errors import MissingColumn, TorchfricError
 from ...estimators.observers import Callback
-from ...estimators.prefit import prefit
+from ...estimators.prefit import PREFIT_ROWS, prefit
 from ...models.arm import ArmModel
 from ...models.friction import make_friction
 from ...resources import (
@@ -184,7 +184,7 @@ def check_resources(cfg: Config, train: list[Experiment], model: ArmModel) -> No
     size = f"model.size = {cfg.model.size} ({n_theta} parameters)"
     if cfg.model.init == "prefit":
         require_memory(
-            prefit_bytes(n_theta, samples),
+            prefit_bytes(n_theta, min(samples, PREFIT_ROWS)),  # its rows: at most the cap
             f"the pre-fit of {size} over {samples} samples",
             "lower model.size, or use data.stop to fit on fewer samples",
         )
