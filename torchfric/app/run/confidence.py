@@ -15,8 +15,7 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
    model's criterion leaves out the samples where the axis sticks (`_moving`);
 3. the sandwich covariance at the reported θ (`pem_covariance`) plus the outer product of
    its offset from the run's other estimate (`offset_covariance`): the optimum's when the
-   polish was rejected (its end plus the Gauss–Newton step still left there), the filter's
-   kept pass when it was kept.
+   polish was rejected, the filter's kept pass when it was kept.
 
 The filter's own matrix stays beside it (``filter_P_theta``), so does the kept pass's θ when
 the polish moved it (``filter_theta``) and the kept member's tuning in absolute units
@@ -113,12 +112,11 @@ def attach_covariance(
         # The one-step prediction error's optimum simulates worse (a model class that cannot
         # reach the machine, e.g. a static curve for LuGre friction, trades the long horizon
         # for the short one): the kept θ stays. Its σ are the sandwich's at it plus its offset
-        # from the optimum (`offset_covariance`): the polish's end and the Gauss–Newton step
-        # still left there (where the step budget ran out, ℓ still rising), and a warning
-        # says how far that lies (`newton_step_sigma`).
+        # from the optimum (`offset_covariance`), and a warning says how far that lies
+        # (`newton_step_sigma`).
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem, offset = at_kept, polished - theta + pem.newton
+        pem, offset = at_kept, polished - theta
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         # Its σ include its distance from the filter's kept pass (`offset_covariance`): about
         # σ where the class holds the machine, the size of its bias where it does not.
