@@ -40,15 +40,17 @@ def native_cache(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pat
 
 
 @pytest.fixture(scope="session")
-def _worker_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+def worker_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
+    """One compiled-code cache folder for the test worker's whole session (each model's C is
+    built once per worker): `worker_cache` sets it for a test; subprocesses take it by path."""
     return tmp_path_factory.mktemp("native_cache")
 
 
 @pytest.fixture
-def worker_cache(_worker_cache_dir: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
+def worker_cache(worker_cache_dir: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pathlib.Path:
     """A compiled-code cache (``TORCHFRIC_CACHE``) for the test worker's whole session, the
     native path on: each model's C is traced and built once per worker, not once per test
     (about 3 s a library). Tests of the cache itself take `native_cache`."""
-    monkeypatch.setenv("TORCHFRIC_CACHE", str(_worker_cache_dir))
+    monkeypatch.setenv("TORCHFRIC_CACHE", str(worker_cache_dir))
     monkeypatch.delenv("TORCHFRIC_NATIVE", raising=False)
-    return _worker_cache_dir
+    return worker_cache_dir

@@ -189,21 +189,15 @@ def test_troubleshooting_quotes_real_messages() -> None:
     assert not invented, f"not the code's text (or since changed): {invented}"
 
 
-@pytest.fixture(scope="session")
-def snippet_cache(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
-    """One compiled-code cache for every snippet: each model's C is built once per session."""
-    return tmp_path_factory.mktemp("native_cache")
-
-
 @pytest.mark.parametrize(
     ("page", "index", "code"), _python_blocks(), ids=[f"{p}[{i}]" for p, i, _ in _python_blocks()]
 )
 def test_python_snippet_runs(
-    page: str, index: int, code: str, tmp_path: pathlib.Path, snippet_cache: pathlib.Path
+    page: str, index: int, code: str, tmp_path: pathlib.Path, worker_cache_dir: pathlib.Path
 ) -> None:
     shutil.copytree(ROOT / "experiments" / "configs", tmp_path / "experiments" / "configs")
     shutil.copytree(ROOT / "checkpoints", tmp_path / "checkpoints")
-    env = {**os.environ, "TORCHFRIC_CACHE": str(snippet_cache)}
+    env = {**os.environ, "TORCHFRIC_CACHE": str(worker_cache_dir)}  # one build per worker
     env.pop("TORCHFRIC_NATIVE", None)
     done = subprocess.run(
         [sys.executable, "-c", code],

@@ -471,9 +471,9 @@ def pem_refine(
     `moving`: the samples in V (`innovations`).
 
     Returns ``(θ, covariance at θ, ℓ after each accepted step, the first at the start)``."""
-    cov = start or pem_covariance(
-        model, experiments, tuning, theta, q_scale=q_scale, r_scale=r_scale, moving=moving
-    )
+    at = functools.partial(pem_covariance, model, experiments, tuning, q_scale=q_scale,
+                           r_scale=r_scale, moving=moving)  # fmt: skip
+    cov = start or at(theta)
     theta = cov.theta
     trace = [cov.loglik]
     for _ in range(iterations):
@@ -494,7 +494,6 @@ def pem_refine(
         if trial is None:
             break
         theta = trial
-        cov = pem_covariance(model, experiments, tuning, theta, q_scale=q_scale,
-                             r_scale=r_scale, moving=moving)  # fmt: skip
+        cov = at(theta)
         trace.append(cov.loglik)
     return theta, cov, trace
