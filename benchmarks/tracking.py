@@ -38,6 +38,8 @@ the change, or more than one after it); the final inertia against the truth and 
 steady-state curve's RMS error against the truth after the change (rig: over ±8 rad/s,
 |q̇| > 0.05; axes: over ±v95 of the record, |q̇| > vs/10; in % of its peak; the starting model's
 in brackets). Throughput: samples per second of the tracking loop (the command's own count).
+The σ bands (issue 31): the share of track.csv's rows (one per 0.1 s) whose ±2σ holds the true
+M and b, "before → after" the change (after: from 10 s after it), or over the unchanged record.
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ CLI = [sys.executable, "-m", "torchfric"]
 AXES = {"axis": STRIBECK_AXIS, "linear": LINEAR_AXIS}
 IDENT_SEED, QUIET_SEED = 100, 7
 BEFORE, AFTER = 60.0, 60.0  # the axes' change records [s]
+RIG_TRUTH = (RigParameters().inertia, RigParameters().sigma2)  # M and b (the LuGre rig's σ2)
 
 
 def write_csv(path: pathlib.Path, rec: dict) -> None:
@@ -94,6 +97,19 @@ def track(
     wall = time.perf_counter() - start
     rate = float(done.stdout.split("(")[1].split(" samples/s")[0].replace(",", ""))
     return json.loads((out / "events.json").read_text()), rate, wall
+
+
+def bands(out: pathlib.Path, truth: tuple[float, float], change: float | None) -> str:
+    """Share of track.csv's rows whose ±2σ band holds the true (M, b): before the change and
+    from 10 s after it (the estimate re-converges in between), or over the whole record."""
+    with open(out / "track.csv", encoding="utf-8") as f:
+        names = f.readline().strip().split(",")
+    table = np.loadtxt(out / "track.csv", delimiter=",", skiprows=1, ndmin=2)
+    t = table[:, 0]
+    inside = [np.abs(table[:, names.index(n)] - x) <= 2 * table[:, names.index(f"{n}_std")]
+              for n, x in zip(("inertia", "viscous"), truth, strict=True)]  # fmt: skip
+    spans = [t < change, t >= change + 10.0] if change is not None else [t >= t[0]]
+    return " → ".join("/".join(f"{100 * ok[s].mean():.0f}" for ok in inside) for s in spans)
 
 
 def disturbed(axis: AxisParameters) -> AxisParameters:
@@ -154,14 +170,16 @@ def axis_curve(model, truth: AxisParameters, v95: float) -> float:  # type: igno
 
 
 def row(name: str, rec: dict, events: dict, final: Any, inertia: float, curve: float,
-        start: float, rate: float, wall: float, visible: float | None) -> dict:  # fmt: skip
+        start: float, rate: float, wall: float, visible: float | None,
+        cover: str = "") -> dict:  # fmt: skip
     """One table row; a record with a change carries ``rec["change"]``."""
     changes = events["changes"]
     if "change" not in rec:
         return {"record": name, "samples": rec["t"].size, "delay": None, "visible": None,
                 "changed": False,
                 "false": len(changes), "inertia": 100 * (float(final.inertia.detach()) / inertia - 1),
-                "curve": curve, "start": start, "rate": rate, "wall": wall}  # fmt: skip
+                "curve": curve, "start": start, "rate": rate, "wall": wall,
+                "cover": cover}  # fmt: skip
     change = float(rec["change"])
     after = [c for c in changes if c >= change]
     return {"record": name, "samples": rec["t"].size, "changed": True,
@@ -169,7 +187,8 @@ def row(name: str, rec: dict, events: dict, final: Any, inertia: float, curve: f
             "visible": (after[0] - visible) if after and visible is not None else None,
             "false": len([c for c in changes if c < change]) + max(0, len(after) - 1),
             "inertia": 100 * (float(final.inertia.detach()) / inertia - 1),
-            "curve": curve, "start": start, "rate": rate, "wall": wall}  # fmt: skip
+            "curve": curve, "start": start, "rate": rate, "wall": wall,
+            "cover": cover}  # fmt: skip
 
 
 def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float) -> list[dict]:
@@ -184,7 +203,8 @@ def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float) -> list[dict]:
         final = load_checkpoint(d / f"rig_c{seed}" / "final.pt")
         rows.append(row(f"rig, change at 30 s, seed {seed}", rec, events, final,
                         RigParameters().inertia, rig_curve(final, RigParameters().changed()),
-                        start, rate, wall, float(rec["t"][np.argmax(slow)])))  # fmt: skip
+                        start, rate, wall, float(rec["t"][np.argmax(slow)]),
+                        bands(d / f"rig_c{seed}", RIG_TRUTH, change)))  # fmt: skip
     p = RigParameters()
     n = int(minutes * 60 / p.dt)
     quiet = simulate_rig(p, excitation("validation", duration=n * p.dt, seed=QUIET_SEED),
@@ -194,7 +214,7 @@ def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float) -> list[dict]:
     final = load_checkpoint(d / "rig_quiet" / "final.pt")
     rows.append(row(f"rig, unchanged, {minutes:g} min", quiet, events, final, p.inertia,
                     rig_curve(final, p), rig_curve(load_checkpoint(CHECKPOINT), p), rate, wall,
-                    None))  # fmt: skip
+                    None, bands(d / "rig_quiet", RIG_TRUTH, None)))  # fmt: skip
     return rows
 
 
@@ -203,6 +223,7 @@ def axis_rows(name: str, d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
     axis = disturbed(AXES[name])
     later = changed(axis)
     ckpt = identify(cache / name, axis)
+    truth = (axis.inertia, axis.viscous)
     model0 = load_checkpoint(ckpt)
     rows = []
     for seed in seeds:
@@ -221,7 +242,8 @@ def axis_rows(name: str, d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
         rows.append(row(f"{name}, change at {BEFORE:g} s, seed {seed}", rec, events, final,
                         axis.inertia, axis_curve(final, later, v95),
                         axis_curve(model0, later, v95), rate, wall,
-                        float(rec["t"][np.argmax(sliding)])))  # fmt: skip
+                        float(rec["t"][np.argmax(sliding)]),
+                        bands(d / f"{name}_c{seed}", truth, change)))  # fmt: skip
     quiet = cached(
         cache / name / f"quiet{minutes:g}.npz",
         lambda: axis_record(axis, seed=QUIET_SEED, duration=minutes * 60, kind="validation"),
@@ -232,7 +254,7 @@ def axis_rows(name: str, d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
     v95 = float(np.quantile(np.abs(quiet["qdot_true"]), 0.95))
     rows.append(row(f"{name}, unchanged, {minutes:g} min", quiet, events, final, axis.inertia,
                     axis_curve(final, axis, v95), axis_curve(model0, axis, v95), rate, wall,
-                    None))  # fmt: skip
+                    None, bands(d / f"{name}_quiet", truth, None)))  # fmt: skip
     return rows
 
 
@@ -286,14 +308,16 @@ def carriage_rows(d: pathlib.Path, cache: pathlib.Path, seeds: list[int],
         rows.append(row(f"carriage, change at {BEFORE:g} s, seed {seed}", rec, events, final,
                         carriage.M, carriage_curve(final, 1.4, v95),
                         carriage_curve(model0, 1.4, v95), rate, wall,
-                        float(rec["t"][np.argmax(sliding)])))  # fmt: skip
+                        float(rec["t"][np.argmax(sliding)]),
+                        bands(d / f"carriage_c{seed}", (carriage.M, carriage.B), BEFORE)))  # fmt: skip
     quiet = record(f"quiet{minutes:g}", minutes * 60, QUIET_SEED, None)
     events, rate, wall = track(ckpt, folder / f"quiet{minutes:g}.csv", d / "carriage_quiet")
     final = load_checkpoint(d / "carriage_quiet" / "final.pt")
     v95 = float(np.quantile(np.abs(quiet["v"]), 0.95))
     rows.append(row(f"carriage, unchanged, {minutes:g} min", {"t": quiet["t"]}, events, final,
                     carriage.M, carriage_curve(final, 1.0, v95),
-                    carriage_curve(model0, 1.0, v95), rate, wall, None))  # fmt: skip
+                    carriage_curve(model0, 1.0, v95), rate, wall, None,
+                    bands(d / "carriage_quiet", (carriage.M, carriage.B), None)))  # fmt: skip
     return rows
 
 
@@ -322,8 +346,9 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 rows += axis_rows(m, d, cache, args.seeds, args.quiet_minutes)
     print("| record | samples | detection delay | after exciting motion | false alarms | "
-          "final inertia | final curve (start) | loop samples/s | command |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|")
+          "final inertia | final curve (start) | loop samples/s | command | "
+          "M / b in ±2σ, % of rows |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         delay = f"{r['delay']:.2f} s" if r["delay"] is not None else "–"
         visible = f"{r['visible']:+.2f} s" if r["visible"] is not None else "–"
@@ -332,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"| {r['record']} | {r['samples']:,} | {delay} | {visible} | {r['false']} | "
             f"{r['inertia']:+.2f} % | {r['curve']:.2f} % ({r['start']:.2f} %) | "
-            f"{r['rate']:,.0f} | {r['wall']:.1f} s |"
+            f"{r['rate']:,.0f} | {r['wall']:.1f} s | {r['cover']} |"
         )
     return 0
 

@@ -282,3 +282,31 @@ def test_a_calibration_with_a_light_top_does_not_make_near_misses_alarms() -> No
         ordinary = det._mean + 1.36 * det._std
         assert det.feed(np.array([1.1 * top, ordinary, 1.1 * top]), np.arange(3.0)) == [], seed
         assert calibrated(blocks).feed(np.array([3 * top, 1.7 * top]), np.arange(2.0)) == [0.0]
+
+
+def test_the_tracker_starts_from_the_filters_own_covariance() -> None:
+    """A run's reported σ (``P_theta``) hold its class's bias; the tracker's prior is the
+    filter's belief (``filter_P_theta``) where the checkpoint has it, else ``P_theta``, else
+    ``reopen · I``."""
+    from torchfric.app.commands.track import _start
+
+    model, _, raw = _model()
+    k = model.num_parameters
+    settings = TrackSettings()
+    state = raw["estimator"]["state"]
+    reported, own = (
+        4.0 * torch.eye(k, dtype=torch.float64),
+        1e-3 * torch.eye(k, dtype=torch.float64),
+    )
+    both = {"estimator": {"state": {**state, "P_theta": reported, "filter_P_theta": own}}}
+    assert torch.equal(_start(both, model, settings)[1], own)
+    old = {"estimator": {"state": {**state, "P_theta": reported}}}
+    assert torch.equal(_start(old, model, settings)[1], reported)
+    bad = {
+        "estimator": {
+            "state": {**state, "P_theta": reported[:2, :2], "filter_P_theta": own * float("nan")}
+        }
+    }
+    assert torch.equal(
+        _start(bad, model, settings)[1], settings.reopen * torch.eye(k, dtype=torch.float64)
+    )

@@ -232,16 +232,25 @@ class _Session:
 
 
 def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any]:
-    """θ and ``P_θθ`` to start from: the checkpoint's estimator state (an EKF run's covariance),
-    else its θ with ``reopen · I`` (output error keeps no covariance)."""
+    """θ and ``P_θθ`` to start from: the checkpoint's estimator state, else its θ with
+    ``reopen · I`` (output error keeps no covariance).
+
+    Of an EKF run's two matrices the tracker takes the filter's own (``filter_P_theta``), the
+    belief a filter had at the end of its passes, and not the reported σ (``P_theta``): those
+    also hold the distance between the run's two estimates and the class's bias, which a
+    filter's prior must not hold — a direction the data barely pins, given a variance 1e5
+    times the filter's, lets that direction take up every change (and the detector, which
+    reads the innovations, then sees none). A checkpoint without it (written before the
+    confidence stage, or by `track` itself) gives its ``P_theta``."""
     import torch
 
     theta = model.get_theta()
     state = (raw.get("estimator") or {}).get("state") or {}
-    P = state.get("P_theta")
     k = theta.numel()
-    if P is not None and tuple(P.shape) == (k, k) and bool(torch.isfinite(P).all()):
-        return theta, torch.as_tensor(P, dtype=torch.float64).clone()
+    for key in ("filter_P_theta", "P_theta"):
+        P = state.get(key)
+        if P is not None and tuple(P.shape) == (k, k) and bool(torch.isfinite(P).all()):
+            return theta, torch.as_tensor(P, dtype=torch.float64).clone()
     return theta, settings.reopen * torch.eye(k, dtype=torch.float64)
 
 

@@ -15,7 +15,8 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
    model's criterion leaves out the samples where the axis sticks (`_moving`);
 3. the sandwich covariance at the reported θ (`pem_covariance`) plus the outer product of
    its offset from the run's other estimate (`offset_covariance`): the optimum's when the
-   polish was rejected, the filter's kept pass when it was kept.
+   polish was rejected (its end plus the Gauss–Newton step still left there), the filter's
+   kept pass when it was kept.
 
 The filter's own matrix stays beside it (``filter_P_theta``), so does the kept pass's θ when
 the polish moved it (``filter_theta``) and the kept member's tuning in absolute units
@@ -109,14 +110,14 @@ def attach_covariance(
         len(trace) > 1
         and _score(cfg, final, polished, judged) < _score(cfg, final, theta, judged) - 0.1
     ):
-        # The one-step prediction error's optimum simulates worse (a model class that cannot
-        # reach the machine, e.g. a static curve for LuGre friction, trades the long horizon
-        # for the short one): the kept θ stays. Its σ are the sandwich's at it plus its offset
-        # from the optimum (`offset_covariance`), and a warning says how far that lies
-        # (`newton_step_sigma`).
+        # The one-step prediction error's optimum simulates worse (a class that cannot reach
+        # the machine, e.g. a static curve for LuGre friction, trades the long horizon for the
+        # short one): the kept θ stays, its σ the sandwich's at it plus its offset from the
+        # optimum (`offset_covariance`), taken as the polish's end plus the Gauss–Newton step
+        # left there (its budget ran out, ℓ still rising); a warning: `newton_step_sigma`.
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem, offset = at_kept, polished - theta
+        pem, offset = at_kept, polished - theta + pem.newton
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         # Its σ include its distance from the filter's kept pass (`offset_covariance`): about
         # σ where the class holds the machine, the size of its bias where it does not.
