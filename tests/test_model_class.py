@@ -146,6 +146,28 @@ def test_a_close_call_with_visible_bristles_suggests_trying_lugre() -> None:
     assert not hint(t=-2.7, gain=-1.07, bristle_travel=4.7e-3)  # LuGre predicted worse
 
 
+def test_bristles_are_seen_between_one_step_and_the_records_span() -> None:
+    """Both limits the record cannot tell from another model: a travel below one position step
+    is σ0 → ∞ (static, sticking), one beyond the records' span is σ0 → 0 (bristles that never
+    slide: a spring). The summary names the second (a belt-driven stage of a user walk: a fit
+    with 2 g(0)/σ0 = 320 m on a 0.22-m stroke had won the windows by 5 standard errors)."""
+    from torchfric.models.lugre import bristles_seen
+
+    assert bristles_seen(2e-5, 5e-6, 0.2) and bristles_seen(2e-5, 5e-6)
+    assert not bristles_seen(2e-6, 5e-6, 0.2)  # finer than the encoder
+    assert not bristles_seen(320.0, 5e-6, 0.217) and not bristles_seen(0.2, 5e-6, 0.2)
+    assert bristles_seen(1e-3, math.nan, 0.2) and not bristles_seen(1.0, math.nan, 0.2)
+    row = {"dynamic": "none", "parameters": 8, "rmse_q": 2.7e-3, "bic": -1.0, "chosen": True}
+    d = {"chosen": "none", "windows": 167, "window_seconds": 0.05, "holdout": 0.3,
+         "seconds": 6.5, "t_min": 2.0, "table": [row], "t": 5.0, "gain": 0.893,
+         "bristle_travel": 320.0, "position_step": 5e-6, "position_span": 0.217}  # fmt: skip
+    summary = " ".join(dynamic_lines(d))
+    assert "never slide within the records (σ0 → 0: a spring, not friction)" in summary
+    assert "span of 0.217" in summary and 'model.dynamic = "lugre"' not in summary
+    seen = " ".join(dynamic_lines(d | {"bristle_travel": 2e-5}))
+    assert "never slide" not in seen and "cannot tell" not in seen
+
+
 def test_the_bristle_travel_is_the_swing_of_the_steady_deflection() -> None:
     """`bristle_travel` = z(+) − z(−) of ``ż = v − σ0 |v| z / g(v)`` integrated to rest at a
     held speed below the stick velocity, one way and the other (here 2 g(0)/σ0 = 3e-4)."""

@@ -37,8 +37,8 @@ same ensemble and passes) and scored by how well it predicts the held-out rest i
 open-loop windows from its own filter (`torchfric.estimators.selection.window_errors`). Those
 windows also reward a model that sticks, which a static curve through zero cannot; so LuGre is
 kept only when its bristles are seen as well: their travel through a reversal, ``2 g(0)/σ0``,
-must span the records' position step (`torchfric.models.lugre.bristle_travel`). Below it the
-record cannot tell σ0 from σ0 → ∞, the static model that sticks.
+must lie between the records' position step and span (`torchfric.models.lugre.bristles_seen`:
+below, σ0 → ∞, the static model that sticks; beyond, σ0 → 0, bristles that never slide).
 
 Why this size: one concept, the model's structure from the identification data, and one
 machinery for it (every candidate identified by the same batched ensemble, `compare_sizes`,
@@ -366,6 +366,7 @@ class DynamicsResult:
     seconds: float
     travel: float  # the dynamic model's bristle travel through a reversal, 2 g(0)/σ0
     step: float  # the records' position step (`position_step`)
+    span: float  # the longest record's position range, max q − min q
     thetas: dict[str, Tensor] = dataclasses.field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -387,6 +388,7 @@ class DynamicsResult:
             "seconds": self.seconds,
             "bristle_travel": self.travel,
             "position_step": self.step,
+            "position_span": self.span,
             "table": table,
         }
 
@@ -416,8 +418,8 @@ def compare_dynamics(
     starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
     mean squared position errors are compared pair by pair. The dynamic model is kept only when
     its windows predict better by more than `T_MIN` standard errors of the mean difference and
-    its bristles travel at least one position step through a reversal (`bristle_travel`
-    against `position_step`); otherwise (a tie, bristles the records cannot see, or every
+    its bristles travel between one position step and the records' span (`bristles_seen`);
+    otherwise (a tie, bristles the records cannot see or that never slide in them, or every
     dynamic filter diverging) the static model, the simpler one, is. The windows see stiction
     as much as bristle dynamics: a static curve through zero cannot stick, so on machines with
     sharp stiction LuGre predicts better whatever its σ0, and a σ0 too stiff for the encoder to
@@ -458,11 +460,11 @@ def compare_dynamics(
     t = float(d.mean()) / se if se > 0 else (math.inf if float(d.mean()) > 0 else -math.inf)
     gain = 1.0 - float(b.mean() / a.mean())
     travel = bristle_travel(dynamic.friction, *dynamic.split(thetas[b_key]))
-    step = position_step(exps)
-    chosen = b_key if t > T_MIN and bristles_seen(travel, step) else a_key
+    step, span = position_step(exps), max(float(e.q.max() - e.q.min()) for e in exps)
+    chosen = b_key if t > T_MIN and bristles_seen(travel, step, span) else a_key
     rmse = {k: float(v.mean().sqrt()) for k, v in mse.items()}
     return DynamicsResult(scores, rmse, gain, t, chosen, n, window_seconds, holdout,
-                          time.perf_counter() - t0, travel, step, thetas)  # fmt: skip
+                          time.perf_counter() - t0, travel, step, span, thetas)  # fmt: skip
 
 
 def _identify_and_predict(

@@ -250,7 +250,9 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
         f"bristles travel at least one position step through a reversal: 2 g(0)/σ0 = "
         f"{_num(dyn.get('bristle_travel', math.nan), '.3g')} against "
         f"{_num(dyn.get('position_step', math.nan), '.3g')} (a travel below the encoder's step "
-        "is the limit σ0 → ∞, a static model that sticks). The one-step BIC is shown but not "
+        "is the limit σ0 → ∞, a static model that sticks), and less than the records' position "
+        f"span of {_num(dyn.get('position_span', math.inf), '.3g')} (beyond it the bristles "
+        "never slide: σ0 → 0, a spring). The one-step BIC is shown but not "
         "used: the bristle state's extra freedom raises the filter's likelihood on static "
         "machines too.</p>"
     )

@@ -230,7 +230,8 @@ class ModelConfig(TableSection):
             from its own filter; "lugre" is kept only when its windows' mean squared position
             error is lower by more than 2 standard errors of the paired difference and its
             bristles travel at least one position step through a reversal (2 g(0)/σ0; a
-            stiffer σ0 is, for this record, σ0 → ∞: a static model that sticks), else the
+            stiffer σ0 is, for this record, σ0 → ∞: a static model that sticks) and less
+            than the records' position span (a softer one never slides: σ0 → 0), else the
             static model (`torchfric.app.run.autosize`; the comparison is in metrics.json's
             ``dynamics``, the summary and report.html). The validation and test records are
             not read. A run then trains the chosen class on all the data (about 2.4× the time

@@ -26,7 +26,8 @@ tuning and ensemble, and each predicts the held-out last 30 % in open-loop windo
 started from its own filter. LuGre is kept only when its windows predict the position better
 by more than two standard errors and its bristles travel at least one position step through a
 reversal (``2 g(0)/σ0``; stiffer bristles are, for this record, the limit σ0 → ∞: a static
-model that sticks); otherwise the static model is kept. The run then trains the chosen
+model that sticks) and less than the records' position span (softer ones never slide in the
+record: σ0 → 0, a spring and a damper); otherwise the static model is kept. The run then trains the chosen
 class on the whole records like any other run. The comparison goes into ``metrics.json`` (key
 ``dynamics``), ``report.html`` and the summary (`dynamic_lines`).
 
@@ -188,7 +189,7 @@ def choose_dynamic(
         f'  model.dynamic = "auto": static and LuGre friction identified on the first '
         f"{1 - HOLDOUT:.0%} of each record, each predicting the last {HOLDOUT:.0%} in "
         f"{WINDOW_SECONDS:g}-s open-loop windows; LuGre is kept if it predicts better by > 2 σ "
-        "and its bristles travel a position step"
+        "and its bristles travel more than a position step and less than the records' span"
     )
     result = compare_dynamics(
         starts["none"], starts["lugre"], train, est.ekf_tuning(), spec, device=device
@@ -226,11 +227,15 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
     )
     travel, step = dynamics.get("bristle_travel"), dynamics.get("position_step")
     if travel is not None and step is not None:
-        seen = bristles_seen(travel, step)
+        span = dynamics.get("position_span", math.inf)
+        seen = bristles_seen(travel, step, span)
         why = "" if seen else ": the record cannot tell σ0 from ∞ (static)"
+        if not travel < span:
+            why = ": they never slide within the records (σ0 → 0: a spring, not friction)"
         lines.append(
             f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
-            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1){why}"
+            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1 step up to the "
+            f"records' span of {span:.3g}){why}"
         )
         if dynamics["chosen"] == "none" and seen and gain > 0 and math.isfinite(t):
             lines.append(  # the windows' blind spot (docs/results.md: a LuGre spindle)
