@@ -126,11 +126,26 @@ def _models() -> dict[str, ArmModel]:
             asymmetric=0.003,
             estimate_c_m=True,
         ),  # fmt: skip
-        "lugre tanh": ArmModel(tanh, inertia=0.035, viscous=0.012, c_m=16.0, dynamic="lugre",
-                               sigma0=1200.0, sigma1=11.0),  # fmt: skip
+        "lugre tanh": ArmModel(
+            tanh,
+            inertia=0.035,
+            viscous=0.012,
+            c_m=16.0,
+            dynamic="lugre",
+            sigma0=1200.0,
+            sigma1=11.0,
+        ),  # fmt: skip
         "lugre polytopic + terms": ArmModel(
-            PolytopicFriction(3), inertia=0.03, viscous=None, c_m=16.0, offset=-0.02,
-            gravity=0.05, asymmetric=0.003, dynamic="lugre", sigma0=3e4, sigma1=40.0,
+            PolytopicFriction(3),
+            inertia=0.03,
+            viscous=None,
+            c_m=16.0,
+            offset=-0.02,
+            gravity=0.05,
+            asymmetric=0.003,
+            dynamic="lugre",
+            sigma0=3e4,
+            sigma1=40.0,
         ),  # fmt: skip
     }
 
@@ -145,8 +160,13 @@ def _stretch(n: int, m: int, seed: int = 0):  # type: ignore[no-untyped-def]
     return u, (y if m == 2 else y[:, :1] if m == 1 else y)
 
 
-@pytest.mark.parametrize("name", list(_models()))
-@pytest.mark.parametrize("measure", ["both", "position"])
+# The two axes are orthogonal: the friction model is in the propagator, the measurement in the
+# update (H and R). Every model with both channels; position only (its own H, R and innovation
+# shapes) on one static and one LuGre model, which also holds its third state.
+CASES = [("both", name) for name in _models()] + [("position", "tanh"), ("position", "lugre tanh")]
+
+
+@pytest.mark.parametrize(("measure", "name"), CASES, ids=[f"{m}-{n}" for m, n in CASES])
 def test_native_filter_step_equals_eager(name: str, measure: str) -> None:
     model = _models()[name]
     k = model.num_parameters
@@ -407,7 +427,9 @@ def test_fixed_theta_step_is_the_augmented_step_with_theta_held(name: str) -> No
                         member_consts=(False, True, False, True, False))  # fmt: skip
     P0 = torch.zeros(K, s + k, s + k)
     P0[:, :s, :s] = p0_x
-    (x_a, P_a), outs_a = full.chunk((torch.cat([x0, theta], 1), P0), xs, valid, (dt, Qk, H, Rk, bound))
+    (x_a, P_a), outs_a = full.chunk(
+        (torch.cat([x0, theta], 1), P0), xs, valid, (dt, Qk, H, Rk, bound)
+    )
 
     fixed = make_fixed_theta_step(model, 2)
     held = compile_step(fixed, carry=2, members=True, key=step_key("test fixed", fixed.key),
