@@ -6,17 +6,21 @@
   of it, when the link names one).
 - Every ```python block runs as it is, from a temporary folder holding copies of
   experiments/configs/ and checkpoints/ (so nothing is written into the repository), with a
-  compiled-code cache of the session's own.
+  compiled-code cache of the session's own: each in a process of its own, forked from one that
+  has imported only torch and numpy (what every block would import again, 2 s each).
 - Every `torchfric SUBCOMMAND` in a command line names a real subcommand.
 - Every message quoted in docs/troubleshooting.md is the code's own text.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
 import re
+import select
 import shutil
+import signal
 import subprocess
 import sys
 
@@ -189,22 +193,83 @@ def test_troubleshooting_quotes_real_messages() -> None:
     assert not invented, f"not the code's text (or since changed): {invented}"
 
 
+# The snippet runner: `python -c` that imports torch and numpy once, then forks a child per
+# block. The child runs the block as `python -c BLOCK` would: in a clean `__main__`, from the
+# block's folder, its stdout and stderr in files, its exit status that of the block (a traceback
+# and 1 on an exception; SystemExit's code); atexit handlers and non-daemon threads end first.
+RUNNER = r"""
+import json, os, sys
+import numpy, torch  # noqa: F401  (imported before the fork: third-party modules only)
+
+
+def run(job):
+    import atexit, builtins, os, sys, threading, traceback  # locals: the globals are cleared
+    os.chdir(job["cwd"])
+    for fd, name in ((1, "out"), (2, "err")):
+        os.dup2(os.open(job[name], os.O_WRONLY | os.O_CREAT | os.O_TRUNC), fd)
+    os.dup2(os.open(os.devnull, os.O_RDONLY), 0)
+    main = sys.modules["__main__"].__dict__
+    main.clear()
+    main.update(__name__="__main__", __builtins__=builtins, __doc__=None, __spec__=None,
+                __loader__=None, __package__=None)
+    code = 0
+    try:
+        exec(compile(job["code"], "<string>", "exec"), main)
+    except SystemExit as stop:
+        code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+        if not isinstance(stop.code, int) and stop.code is not None:
+            print(stop.code, file=sys.stderr)
+    except BaseException:
+        traceback.print_exc()
+        code = 1
+    threading._shutdown()
+    atexit._run_exitfuncs()
+    sys.stdout.flush(), sys.stderr.flush()
+    os._exit(code)
+
+
+for line in sys.stdin:
+    pid = os.fork()
+    if pid == 0:
+        try:
+            run(json.loads(line))
+        finally:
+            os._exit(70)  # run failed itself: never back into this loop
+    print(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]), flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def snippet_runner(worker_cache_dir: pathlib.Path):  # type: ignore[no-untyped-def]
+    env = {**os.environ, "TORCHFRIC_CACHE": str(worker_cache_dir)}  # one build per worker
+    env.pop("TORCHFRIC_NATIVE", None)
+    runner = subprocess.Popen([sys.executable, "-c", RUNNER], env=env, text=True,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              start_new_session=True)  # fmt: skip
+
+    def run(code: str, cwd: pathlib.Path, timeout: float = 600.0) -> tuple[int, str]:
+        out, err = cwd.parent / "stdout.txt", cwd.parent / "stderr.txt"
+        job = {"code": code, "cwd": str(cwd), "out": str(out), "err": str(err)}
+        runner.stdin.write(json.dumps(job) + "\n")
+        runner.stdin.flush()
+        if not select.select([runner.stdout], [], [], timeout)[0]:
+            os.killpg(runner.pid, signal.SIGKILL)  # the runner and the block's process
+            pytest.fail(f"the block ran past {timeout:g} s")
+        line = runner.stdout.readline()
+        assert line, "the snippet runner died"
+        return int(line), err.read_text() if err.exists() else ""
+
+    yield run
+    runner.stdin.close()
+    runner.wait(timeout=60)
+
+
 @pytest.mark.parametrize(
     ("page", "index", "code"), _python_blocks(), ids=[f"{p}[{i}]" for p, i, _ in _python_blocks()]
 )
-def test_python_snippet_runs(
-    page: str, index: int, code: str, tmp_path: pathlib.Path, worker_cache_dir: pathlib.Path
-) -> None:
-    shutil.copytree(ROOT / "experiments" / "configs", tmp_path / "experiments" / "configs")
-    shutil.copytree(ROOT / "checkpoints", tmp_path / "checkpoints")
-    env = {**os.environ, "TORCHFRIC_CACHE": str(worker_cache_dir)}  # one build per worker
-    env.pop("TORCHFRIC_NATIVE", None)
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert done.returncode == 0, f"{page} python block {index} failed:\n{done.stderr[-3000:]}"
+def test_python_snippet_runs(page: str, index: int, code: str, tmp_path, snippet_runner) -> None:  # type: ignore[no-untyped-def]
+    work = tmp_path / "work"  # the block's folder; its stdout and stderr are kept beside it
+    shutil.copytree(ROOT / "experiments" / "configs", work / "experiments" / "configs")
+    shutil.copytree(ROOT / "checkpoints", work / "checkpoints")
+    returncode, stderr = snippet_runner(code, work)
+    assert returncode == 0, f"{page} python block {index} failed:\n{stderr[-3000:]}"
