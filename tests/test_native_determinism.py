@@ -144,11 +144,11 @@ def _ensemble_chunk_inputs(K: int, n: int = 41):  # type: ignore[no-untyped-def]
 @pytest.mark.parametrize("K", [1, 5, 7, 8])
 @pytest.mark.parametrize("threads", ["1", "2"])
 def test_ensemble_chunk_repeated_is_bit_identical_and_equals_eager(
-    K: int, threads: str, native_cache, monkeypatch
+    K: int, threads: str, worker_cache, monkeypatch
 ) -> None:
     """Member counts that do not fill the last SIMD vector (lanes: 4) included: each member's
     result, in whichever lane and thread, is bit-identical call after call and equals the eager
-    step to rounding."""
+    step to rounding. (Every K shares one library: built once per worker, `worker_cache`.)"""
     monkeypatch.setenv("TORCHFRIC_NATIVE_THREADS", threads)
     model, carry, xs, valid, consts = _ensemble_chunk_inputs(K)
     step = make_masked_step(model, 1, compile=True)
@@ -178,7 +178,7 @@ def test_ensemble_chunk_repeated_is_bit_identical_and_equals_eager(
             assert torch.equal(a[0], b[m]) or _bits(a[0]) == _bits(b[m])
 
 
-def test_ensemble_identification_repeated_is_bit_identical(identification, native_cache) -> None:
+def test_ensemble_identification_repeated_is_bit_identical(identification, worker_cache) -> None:
     """Five members (not a multiple of the lane width): the whole ensemble, pass loop and
     selection included, gives bit-identical θ run after run."""
     data = make_experiment(
