@@ -120,18 +120,33 @@ def test_tensorboard_events_hold_parameters_trace_fit_and_figures(
         assert [e.step for e in acc.Images(tag)] == [0, metrics["best_pass"]]
 
 
+@pytest.fixture(scope="module")
+def figure_runs(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    """``run(every)``: the run folder of a 3-pass train with log.figure_every = every, trained
+    once per module (the every = 0 case compares its start figure with the every = 1 run's)."""
+    runs: dict[int, pathlib.Path] = {}
+
+    def run(every: int) -> pathlib.Path:
+        if every not in runs:
+            tmp = tmp_path_factory.mktemp(f"figures_{every}")
+            sets = [*SHORT, "--set", "estimator.passes=3", "--set", f"log.figure_every={every}"]
+            assert main(["train", str(_config(tmp)), "--quiet", *sets]) == 0
+            runs[every] = tmp / "runs" / "short"
+        return runs[every]
+
+    return run
+
+
 @pytest.mark.parametrize(("every", "steps"), [(1, {0, 1, 2, 3}), (2, {0, 2}), (0, {0})])
 def test_figures_every_n_passes_and_always_at_the_start_and_the_kept_pass(
-    tmp_path: pathlib.Path, every: int, steps: set[int]
-) -> None:
+    figure_runs, every: int, steps: set[int]
+) -> None:  # type: ignore[no-untyped-def]
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    cfg = _config(tmp_path)
-    sets = [*SHORT, "--set", "estimator.passes=3", "--set", f"log.figure_every={every}"]
-    assert main(["train", str(cfg), "--quiet", *sets]) == 0
-    acc = EventAccumulator(str(tmp_path / "runs" / "short"), size_guidance={"images": 0})
+    folder = figure_runs(every)
+    acc = EventAccumulator(str(folder), size_guidance={"images": 0})
     acc.Reload()
-    kept = json.loads((tmp_path / "runs" / "short" / "metrics.json").read_text())["best_pass"]
+    kept = json.loads((folder / "metrics.json").read_text())["best_pass"]
     for tag in ("friction_curve", "validation/validation"):  # (the kept pass's come last)
         assert sorted(e.step for e in acc.Images(tag)) == sorted(steps | {kept})
     # the kept model's figures, drawn at the end (the run's σ and a polished θ come after the
@@ -142,7 +157,7 @@ def test_figures_every_n_passes_and_always_at_the_start_and_the_kept_pass(
         import base64
         import re
 
-        html = (tmp_path / "runs" / "short" / "report.html").read_text()
+        html = (folder / "report.html").read_text()
         embedded = [
             base64.b64decode(b) for b in re.findall(r"data:image/png;base64,([^\"']+)", html)
         ]
@@ -150,9 +165,8 @@ def test_figures_every_n_passes_and_always_at_the_start_and_the_kept_pass(
             _pixels(png).shape == _pixels(final).shape and (_pixels(png) == _pixels(final)).all()
             for png in embedded
         )
-        other = EventAccumulator(str(tmp_path / "runs" / "every"), size_guidance={"images": 0})
-        assert main(["train", str(cfg), "--quiet", *sets, "--set", "log.figure_every=1",
-                     "--out", str(tmp_path / "runs" / "every")]) == 0  # fmt: skip
+        # the every = 1 run (another folder, the same config and passes)
+        other = EventAccumulator(str(figure_runs(1)), size_guidance={"images": 0})
         other.Reload()
         by_step = {e.step: e.encoded_image_string for e in other.Images("friction_curve")}
         # the same pixels (the PNG encoder's bytes are not the point)
