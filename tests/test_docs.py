@@ -7,7 +7,7 @@
 - Every ```python block runs as it is, from a temporary folder holding copies of
   experiments/configs/ and checkpoints/ (so nothing is written into the repository), with a
   compiled-code cache of the session's own: each in a process of its own, forked from one that
-  has imported only torch and numpy (what every block would import again, 2 s each).
+  has imported only third-party modules (torch, numpy, matplotlib: 2 to 4 s in every block).
 - Every `torchfric SUBCOMMAND` in a command line names a real subcommand.
 - Every message quoted in docs/troubleshooting.md is the code's own text.
 """
@@ -193,13 +193,16 @@ def test_troubleshooting_quotes_real_messages() -> None:
     assert not invented, f"not the code's text (or since changed): {invented}"
 
 
-# The snippet runner: `python -c` that imports torch and numpy once, then forks a child per
-# block. The child runs the block as `python -c BLOCK` would: in a clean `__main__`, from the
-# block's folder, its stdout and stderr in files, its exit status that of the block (a traceback
-# and 1 on an exception; SystemExit's code); atexit handlers and non-daemon threads end first.
+# The snippet runner: `python -c` that imports torch, numpy and matplotlib once, then forks a
+# child per block. The child runs the block as `python -c BLOCK` would: in a clean `__main__`,
+# from the block's folder, its stdout and stderr in files, its exit status that of the block (a
+# traceback and 1 on an exception; SystemExit's code); atexit handlers and non-daemon threads
+# end first.
 RUNNER = r"""
 import json, os, sys
-import numpy, torch  # noqa: F401  (imported before the fork: third-party modules only)
+# imported before the fork, third-party modules only: what the blocks import again and again
+# (torch._inductor, 1.7 s: torchfric's compiled paths import it; matplotlib: the run's figures)
+import matplotlib.backends.backend_agg, matplotlib.figure, numpy, torch, torch._inductor  # noqa
 
 
 def run(job):
