@@ -257,8 +257,10 @@ def test_selection_by_validation_and_training_fit_matches_score_simulation() -> 
     assert ens.best == max(range(4), key=lambda j: ens.members[j].score)
 
 
-@pytest.mark.parametrize("engine", ["odeint", "compiled"])
-def test_simulate_members_equals_one_by_one(engine: str) -> None:
+@pytest.fixture(scope="module")
+def one_by_one():  # type: ignore[no-untyped-def]
+    """Four members (one steep) on 1500 samples, and each simulated alone by odeint with its
+    own "auto" sub-steps: the reference of both engines' cases, simulated once."""
     true = _true()
     exp = _data(true, n=1500)
     g = torch.Generator().manual_seed(7)
@@ -266,15 +268,23 @@ def test_simulate_members_equals_one_by_one(engine: str) -> None:
     steep = thetas[0].clone()
     steep[true.theta_names.index("W1[3]")] *= 20.0  # needs more RK4 sub-steps than the rest
     thetas = torch.cat([thetas, steep[None]])
-    need = {auto_substeps(true, exp.dt, theta=th) for th in thetas}
-    assert len(need) > 1
-    sims = simulate_members(true, thetas, exp, engine=engine)
     x0 = torch.stack([exp.q[0], exp.qdot[0]])
+    refs = []
     for j in range(4):
         model = ArmModel.from_spec(true.spec()).set_theta(thetas[j])
         with torch.no_grad():
-            ref = simulate(model, exp.t, exp.u, x0)  # odeint, its own "auto" sub-steps
-        torch.testing.assert_close(sims[:, j], ref, rtol=0, atol=1e-12)
+            refs.append(simulate(model, exp.t, exp.u, x0))  # odeint, its own "auto" sub-steps
+    return true, exp, thetas, refs
+
+
+@pytest.mark.parametrize("engine", ["odeint", "compiled"])
+def test_simulate_members_equals_one_by_one(engine: str, one_by_one) -> None:  # type: ignore[no-untyped-def]
+    true, exp, thetas, refs = one_by_one
+    need = {auto_substeps(true, exp.dt, theta=th) for th in thetas}
+    assert len(need) > 1
+    sims = simulate_members(true, thetas, exp, engine=engine)
+    for j in range(4):
+        torch.testing.assert_close(sims[:, j], refs[j], rtol=0, atol=1e-12)
     assert sims.shape == (1500, 4, 2)
     assert float(sims[:, :, 1].abs().max()) > 1.0  # the arm actually moves
     # A member stiffer than the cap is not simulated (NaN rows), the others are unaffected.
