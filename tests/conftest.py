@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import os
 import pathlib
 
 import numpy as np
@@ -41,9 +42,16 @@ def native_cache(tmp_path: pathlib.Path, monkeypatch: pytest.MonkeyPatch) -> pat
 
 @pytest.fixture(scope="session")
 def worker_cache_dir(tmp_path_factory: pytest.TempPathFactory) -> pathlib.Path:
-    """One compiled-code cache folder for the test worker's whole session (each model's C is
-    built once per worker): `worker_cache` sets it for a test; subprocesses take it by path."""
-    return tmp_path_factory.mktemp("native_cache")
+    """One compiled-code cache folder for the whole session, shared by the xdist workers (each
+    model's C is built once, whichever worker needs it first; the cache is safe for concurrent
+    builders, tests/test_native_cache.py): `worker_cache` sets it for a test; subprocesses take
+    it by path."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's folder, above each worker's own
+    folder = root / "native_cache"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    return folder
 
 
 @pytest.fixture
