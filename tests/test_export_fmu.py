@@ -161,7 +161,7 @@ def test_fmpy_validates_and_runs_without_torch(exported: dict) -> None:
 
 def test_co_simulation_equals_simulate(exported: dict) -> None:
     """CS takes the simulator's own steps: q and qdot to 1e-9 relative (measured: 0 to 5e-15)."""
-    t, u = exported["t"], exported["u"]
+    t = exported["t"]
     for key in exported["cases"]:
         ref = exported["reference"][key]
         cs = exported["seen"][key]["cs"]
