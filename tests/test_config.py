@@ -404,3 +404,27 @@ def test_every_shipped_config_loads(path: pathlib.Path) -> None:
         assert cfg.estimator.ensemble == 0, "reference EKF configs pin the paper's single filter"
     if path.stem.endswith("_defaults"):  # issue 9: "defaults need no tuning"
         assert cfg.estimator == EstimatorConfig()
+
+
+def test_saturation_auto_is_six_for_a_static_model_and_three_for_lugre() -> None:
+    """``model.saturation = "auto"`` (what init writes): each tanh neuron's input weight floor
+    is 6 / v95 for a static model and 3 / v95 for LuGre; numbers stay as given; anything else
+    is refused in one line."""
+    import torch
+
+    from torchfric.app.run.inputs import config_model, saturation_floor
+    from torchfric.data import make_experiment
+
+    t = torch.arange(200, dtype=torch.float64) * 1e-3
+    exp = make_experiment(t, torch.zeros(200), 0.5 * t**2, t.clone())  # q̇ = t: v95 = 0.189
+    v95 = float(torch.quantile(exp.qdot.abs(), 0.95))
+    for dynamic, floor in (("none", 6.0), ("lugre", 3.0)):
+        cfg = Config(model=ModelConfig(saturation="auto", dynamic=dynamic))
+        model = config_model(cfg, [exp])
+        assert model.friction.min_slope * v95 == pytest.approx(floor, rel=1e-12)
+    assert saturation_floor("auto", "auto") == 3.0 and saturation_floor(4, "none") == 4.0
+    assert Config(model=ModelConfig(saturation=4)).model.saturation == 4.0
+    for bad, says in (("six", '"auto" or a number >= 0'), (-1.0, "a number >= 0")):
+        with pytest.raises(TorchfricError, match=f"model.saturation = .*{says}") as err:
+            Config(model=ModelConfig(saturation=bad))
+        assert "\n" not in str(err.value)

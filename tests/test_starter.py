@@ -86,6 +86,8 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert "wrote       " + str(user / "rec.toml") in out
     cfg = Config.load(user / "rec.toml")
     assert cfg.name == "rec" and cfg.model.c_m == C_M
+    # a static model's neurons saturated by v95/2 (6), LuGre's by v95 (3): saturation_floor
+    assert cfg.model.saturation == "auto" and cfg.model.dynamic == "auto"
     assert cfg.data.train == (str(user / "rec.csv"),) and cfg.data.validation == ()
     assert cfg.data.columns == {"t": "time", "u": "current", "q": "position"}
     assert cfg.data.position_unit == "rad" and cfg.data.velocity_cutoff_hz is None

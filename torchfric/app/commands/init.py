@@ -196,7 +196,9 @@ class _Plan:
 
     def text(self) -> str:
         exp, out = self.exp, self.out.name
-        model, est = ModelConfig(c_m=self.c_m, dynamic="auto"), EstimatorConfig()
+        # saturation "auto": 6 static, 3 LuGre (`torchfric.app.run.inputs.saturation_floor`)
+        model = ModelConfig(c_m=self.c_m, dynamic="auto", saturation="auto")
+        est = EstimatorConfig()
         head = [
             f"# Starter config for {self.data.name}, by `torchfric init` (torchfric {__version__})",
             f"#   torchfric check {out}    what a run would do (checks all, writes nothing)",
@@ -213,7 +215,8 @@ class _Plan:
             "",
             "[model]",
         ]
-        for key in ("friction", "size", "dynamic", "c_m", "init", "inertia", "viscous"):
+        keys = ("friction", "size", "saturation", "dynamic", "c_m", "init", "inertia", "viscous")
+        for key in keys:
             head += _block(key, getattr(model, key), _HELP.get(key, ""))
         head += _comment(_TERMS_HELP)
         for key, example, why in _TERMS:
@@ -248,6 +251,9 @@ _NONE = (
     "this config)."
 )
 _HELP = {
+    "saturation": 'tanh: each neuron\'s input weight >= saturation / v95. "auto": 6 for a '
+    "static model (saturated by v95/2: b is the curve's slope there, where a slower neuron "
+    "takes part of it on machines that stick), 3 for LuGre, whose bristles hold the stick.",
     "dynamic": '"auto": static friction and LuGre bristle dynamics (stick, pre-sliding, '
     "hysteresis) are both identified on the first 70 % of the records; LuGre is kept only if it "
     "predicts the held-out rest better and its bristles move the encoder (the summary shows "

@@ -216,6 +216,7 @@ def _type(key: str, note: Checked | None, annotation: str) -> str:
         "number": "float",
         "integer": "integer",
         "auto_or_integer": 'integer or "auto"',
+        "auto_or_number": 'float or "auto"',
         "boolean": "boolean",
         "string": "string",
         "paths": "string or array of strings",
@@ -246,6 +247,8 @@ def _allowed(key: str, note: Checked | None) -> str:
             parts.append("or unset (omit the key)")
     elif kind == "auto_or_integer":
         parts.append(f'`"auto"`, or an integer >= {b["ge"]}')
+    elif kind == "auto_or_number":
+        parts.append(f'`"auto"`, or a number >= {_number(b["ge"])}')
     elif kind == "boolean":
         parts.append("`true`, `false`")
     elif kind == "string":

@@ -210,6 +210,16 @@ class Check:
             self.type_error(name, value, f'"auto" or an integer >= {ge}', example)
         self.integer(name, ge=ge)
 
+    def auto_or_number(self, name: str, *, ge: float, example: float) -> None:
+        """``"auto"``, or a finite number >= `ge` (`number`'s checks)."""
+        self._note(name, "auto_or_number", ge=ge)
+        value = getattr(self.obj, name)
+        if value == "auto":
+            return
+        if not is_number(value):
+            self.type_error(name, value, f'"auto" or a number >= {ge:g}', example)
+        self.number(name, ge=ge)  # its note comes second: the first one is kept
+
     def boolean(self, name: str) -> None:
         self._note(name, "boolean")
         value = getattr(self.obj, name)

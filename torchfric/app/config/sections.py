@@ -219,7 +219,12 @@ class ModelConfig(TableSection):
             and that speed, though, and takes part of b's slope there (one of 12 fits of a
             rotary axis: b 47 σ off, 1.2 σ with 6); the run checks every neuron and warns
             ("viscous and neuron j … are not separately identifiable"): raise it (6, say)
-            then. 0 = the paper's unbounded weights.
+            then. 0 = the paper's unbounded weights. "auto" (what ``torchfric init`` writes):
+            6 for a static model (every neuron saturated by half of v95: on machines that
+            stick, a static curve otherwise recruits a slow neuron for the steep part near
+            rest, which takes b's slope), 3 for LuGre, whose bristles hold the stick (measured
+            over 20 seeds on four machines: docs/results.md, "Parameters you can trust");
+            the shipped configs keep 3.
         init: "prefit" (least-squares pre-fit on the training data), "config" (the values above)
             or the path of a checkpoint to warm-start from (stored absolute).
         dynamic: "none" (static friction), "lugre": a bristle state z with ``ż = q̇ − σ0 |q̇|
@@ -262,7 +267,7 @@ class ModelConfig(TableSection):
     log_positive: bool = True
     velocity_scale: float | None = None
     torque_scale: float | None = None
-    saturation: float = 3.0
+    saturation: float | str = 3.0
     init: str = "prefit"
     asymmetric: float | None = None
     dynamic: str = "none"
@@ -298,7 +303,7 @@ class ModelConfig(TableSection):
             )
         c.number("velocity_scale", gt=0.0, optional=True, example=10.0)
         c.number("torque_scale", gt=0.0, optional=True, example=1.0)
-        c.number("saturation", ge=0.0)
+        c.auto_or_number("saturation", ge=0.0, example=6.0)
         c.string("init")
         _check_sizes(c, self)
         c.string("dynamic", choices=DYNAMIC_CHOICES)

@@ -200,6 +200,17 @@ def check_resources(cfg: Config, train: list[Experiment], model: ArmModel) -> No
         require_memory(ekf_bytes(n_theta, members), what, "lower estimator.ensemble or model.size")
 
 
+STATIC_SATURATION, DYNAMIC_SATURATION = 6.0, 3.0  # model.saturation = "auto"
+
+
+def saturation_floor(saturation: float | str, dynamic: str) -> float:
+    """``model.saturation`` as a number: "auto" is 6 for a static model and 3 for LuGre (and
+    for "auto" before its class is chosen; `config_model` is then called with each class)."""
+    if saturation != "auto":
+        return float(saturation)
+    return STATIC_SATURATION if dynamic == "none" else DYNAMIC_SATURATION
+
+
 def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel:
     """The model with the configured initial guesses (friction sized to the data when unset)."""
     m = cfg.model
@@ -213,8 +224,9 @@ def config_model(cfg: Config, train: list[Experiment] | None = None) -> ArmModel
             v_scale = float(torch.quantile(v_all, 0.95)) or 1.0
         kwargs["velocity_scale"] = v_scale or 1.0
         kwargs["torque_scale"] = m.torque_scale if m.torque_scale is not None else 0.1
-        if m.friction == "tanh" and m.saturation > 0 and m.log_positive:
-            kwargs["min_slope"] = m.saturation / kwargs["velocity_scale"]
+        saturation = saturation_floor(m.saturation, m.dynamic)
+        if m.friction == "tanh" and saturation > 0 and m.log_positive:
+            kwargs["min_slope"] = saturation / kwargs["velocity_scale"]
     kwargs["log_positive"] = m.log_positive
     friction = make_friction(m.friction, m.size, **kwargs)
     v_scale = kwargs.get("velocity_scale") or m.velocity_scale or 1.0
