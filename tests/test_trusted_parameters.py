@@ -272,3 +272,38 @@ def test_a_sticking_axis_leaves_its_stuck_samples_out_of_the_criterion(tmp_path)
 
 
 DURATION_LIGHT = 10.0
+
+
+def test_a_curve_that_pushes_the_axis_near_rest_is_named() -> None:
+    """Friction is passive (F q̇ >= 0). The belt stage's static fit drew its stick as a negative
+    lobe below 2.4 mm/s (−8.8 tanh(1760 q̇) under +12 tanh(77 q̇)): named with the speeds and the
+    depth; a Stribeck curve (a positive sum of tanh) and the shipped rig model are not."""
+    from torchfric.app.run.assessment import _active_friction
+    from torchfric.data import make_experiment
+    from torchfric.models.arm import ArmModel
+
+    t = torch.arange(1000, dtype=torch.float64) * 1e-3
+    v = 0.2 * torch.sin(2 * math.pi * t)  # v95 of |q̇|: 0.1975
+    exp = make_experiment(t, torch.zeros(1000), torch.zeros(1000), v)
+
+    def model(w1: list[float], w2: list[float]) -> ArmModel:
+        return ArmModel(OddTanhFriction(2, w1=w1, w2=w2), inertia=1.8, viscous=15.0, c_m=6.0)
+
+    (line,) = _active_friction(model([1760.0, 77.0], [-8.8, 12.0]), [exp])
+    assert line.startswith("the friction curve pushes the axis instead of braking it at ")
+    low, high = (float(x) for x in line.split(" at ")[1].split(" (")[0].split(" <= |q̇| <= "))
+
+    # the odd part b v − 8.8 tanh(1760 v) + 12 tanh(77 v) is negative from the grid's first
+    # speed (1e-5 v95) to its zero (by bisection), within one step of the log grid (2.3 %)
+    def odd(x: float) -> float:
+        return 15.0 * x - 8.8 * math.tanh(1760.0 * x) + 12.0 * math.tanh(77.0 * x)
+
+    a, b = 1e-4, 0.1
+    for _ in range(200):
+        a, b = (a, 0.5 * (a + b)) if odd(0.5 * (a + b)) > 0 else (0.5 * (a + b), b)
+    assert low == pytest.approx(1e-5 * float(torch.quantile(v.abs(), 0.95)), rel=1e-2)
+    assert high < a <= high * 1.03 and 'model.dynamic = "lugre"' in line
+    assert _active_friction(model([200.0, 20.0], [2.0, 4.0]), [exp]) == []
+    root = pathlib.Path(__file__).resolve().parents[1]
+    rig = torchfric.load_checkpoint(root / "checkpoints" / "arm_tanh_ekf.pt")
+    assert _active_friction(rig, [exp]) == [] and _active_friction(rig, []) == []

@@ -52,6 +52,32 @@ def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
     return []
 
 
+def _active_friction(final: ArmModel, train: list[Experiment]) -> list[str]:
+    """Friction that drives the axis instead of braking it: the steady-state friction's odd
+    part (offset and asymmetric slope are even) below zero somewhere in ``0 < q̇ <= v95`` of
+    the records `train` (beyond 0.1 % of its largest value, against rounding). A passive friction has ``F q̇ >= 0``;
+    a static curve fitted to a record that sticks can draw the stick as a negative lobe near
+    rest (a belt-driven stage of a user walk: −4.4 N below 2 mm/s, where its static friction is
+    +9 N), which simulates as a push at every start."""
+    speeds = [e.qdot.abs() for e in train if e.qdot is not None]
+    speed = float(torch.quantile(torch.cat(speeds)[:1_000_000], 0.95)) if speeds else 0.0
+    if not speed > 0:
+        return []
+    v = torch.logspace(-5.0, 0.0, 501, dtype=torch.float64) * speed
+    with torch.no_grad():
+        odd = 0.5 * (final.friction_torque(v) - final.friction_torque(-v))
+    low = odd < -1e-3 * float(odd.abs().max())
+    if not bool(low.any()):
+        return []
+    where = v[low]
+    return [
+        f"the friction curve pushes the axis instead of braking it at {float(where.min()):.3g} "
+        f"<= |q̇| <= {float(where.max()):.3g} (down to {float(odd.min()):.3g}): friction there "
+        "feeds energy in, which a real machine's cannot; a static curve fitted to a record that "
+        'sticks draws the stick this way: try model.dynamic = "lugre", whose bristles hold it'
+    ]
+
+
 def _uninformed(
     cfg: Config, final: ArmModel, covariance: Any, start: ArmModel | None, metrics: dict[str, Any]
 ) -> list[str]:
@@ -93,10 +119,12 @@ def result_warnings(
     *,
     covariance: Any = None,
     start: ArmModel | None = None,
+    train: list[Experiment] | None = None,
 ) -> list[str]:
     """Plain warnings about a result that is almost certainly wrong, or a part of it the data
     did not inform (`metrics.json` "warnings"). `covariance` is the kept pass's P_θθ and `start`
-    the model the estimator started from (for the parameters the data left at their prior)."""
+    the model the estimator started from (for the parameters the data left at their prior);
+    `train` the identification records (the curve is checked up to their 95th-percentile |q̇|)."""
     out = []
     inertia, first = metrics["inertia"], metrics.get("initial_inertia")
     source = "pre-fit" if init_kind == "prefit" else "initial value"
@@ -108,6 +136,7 @@ def result_warnings(
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
+    out += _active_friction(final, train or [])
     out += _uninformed(cfg, final, covariance, start, metrics)
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():

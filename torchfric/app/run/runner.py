@@ -428,9 +428,8 @@ class _Run:
             groups["identification"] = evaluate_model(final, self.train, cfg)
         for group, by_name in groups.items():
             metrics[group] = {name: score.to_dict() for name, score in by_name.items()}
-        metrics["warnings"] = self.warnings + result_warnings(
-            cfg, final, metrics, self.init_kind, covariance=self.filter_cov, start=self.model
-        )
+        metrics["warnings"] = self.warnings + result_warnings(cfg, final, metrics, self.init_kind,
+            covariance=self.filter_cov, start=self.model, train=self.train)  # fmt: skip
         return metrics
 
     def _write_result(
