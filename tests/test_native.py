@@ -126,26 +126,11 @@ def _models() -> dict[str, ArmModel]:
             asymmetric=0.003,
             estimate_c_m=True,
         ),  # fmt: skip
-        "lugre tanh": ArmModel(
-            tanh,
-            inertia=0.035,
-            viscous=0.012,
-            c_m=16.0,
-            dynamic="lugre",
-            sigma0=1200.0,
-            sigma1=11.0,
-        ),  # fmt: skip
+        "lugre tanh": ArmModel(tanh, inertia=0.035, viscous=0.012, c_m=16.0, dynamic="lugre",
+                               sigma0=1200.0, sigma1=11.0),  # fmt: skip
         "lugre polytopic + terms": ArmModel(
-            PolytopicFriction(3),
-            inertia=0.03,
-            viscous=None,
-            c_m=16.0,
-            offset=-0.02,
-            gravity=0.05,
-            asymmetric=0.003,
-            dynamic="lugre",
-            sigma0=3e4,
-            sigma1=40.0,
+            PolytopicFriction(3), inertia=0.03, viscous=None, c_m=16.0, offset=-0.02,
+            gravity=0.05, asymmetric=0.003, dynamic="lugre", sigma0=3e4, sigma1=40.0,
         ),  # fmt: skip
     }
 
@@ -428,9 +413,7 @@ def test_fixed_theta_step_is_the_augmented_step_with_theta_held(name: str) -> No
                         member_consts=(False, True, False, True, False))  # fmt: skip
     P0 = torch.zeros(K, s + k, s + k)
     P0[:, :s, :s] = p0_x
-    (x_a, P_a), outs_a = full.chunk(
-        (torch.cat([x0, theta], 1), P0), xs, valid, (dt, Qk, H, Rk, bound)
-    )
+    (x_a, P_a), outs_a = full.chunk((torch.cat([x0, theta], 1), P0), xs, valid, (dt, Qk, H, Rk, bound))
 
     fixed = make_fixed_theta_step(model, 2)
     held = compile_step(fixed, carry=2, members=True, key=step_key("test fixed", fixed.key),

@@ -8,6 +8,7 @@ import torch
 
 from ...data import Experiment
 from ...estimators.metrics import SimulationScore, score_simulation
+from ...estimators.settings import data_speeds, speed_quantiles
 from ...models.arm import ArmModel
 from ..artifacts import read_checkpoint
 from ..config import Config
@@ -55,12 +56,12 @@ def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
 def _active_friction(final: ArmModel, train: list[Experiment]) -> list[str]:
     """Friction that drives the axis instead of braking it: the steady-state friction's odd
     part (offset and asymmetric slope are even) below zero somewhere in ``0 < q̇ <= v95`` of
-    the records `train` (beyond 0.1 % of its largest value, against rounding). A passive friction has ``F q̇ >= 0``;
-    a static curve fitted to a record that sticks can draw the stick as a negative lobe near
-    rest (a belt-driven stage of a user walk: −4.4 N below 2 mm/s, where its static friction is
-    +9 N), which simulates as a push at every start."""
-    speeds = [e.qdot.abs() for e in train if e.qdot is not None]
-    speed = float(torch.quantile(torch.cat(speeds)[:1_000_000], 0.95)) if speeds else 0.0
+    the records `train` (beyond 0.1 % of its largest value, against rounding). A passive
+    friction has ``F q̇ >= 0``; a static curve fitted to a record that sticks can draw the stick
+    as a negative lobe near rest (a belt-driven stage of a user walk: −4.7 N below 2.4 mm/s,
+    where its static friction is +9 N), which simulates as a push at every start."""
+    found = speed_quantiles(data_speeds(train), [0.95])  # v95, as `velocity_scale` reads it
+    speed = found[0] if found else 0.0
     if not speed > 0:
         return []
     v = torch.logspace(-5.0, 0.0, 501, dtype=torch.float64) * speed

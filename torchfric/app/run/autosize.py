@@ -229,9 +229,12 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
     if travel is not None and step is not None:
         span = dynamics.get("position_span", math.inf)
         seen = bristles_seen(travel, step, span)
-        why = "" if seen else ": the record cannot tell σ0 from ∞ (static)"
-        if not travel < span:
-            why = ": they never slide within the records (σ0 → 0: a spring, not friction)"
+        why = (
+            "" if seen
+            else ": they never slide within the records (σ0 → 0: a spring, not friction)"
+            if not travel < span
+            else ": the record cannot tell σ0 from ∞ (static)"
+        )  # fmt: skip
         lines.append(
             f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
             f"{travel / step:.2g} position steps of {step:.3g} (kept from 1 step up to the "
