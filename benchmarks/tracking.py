@@ -332,10 +332,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=pathlib.Path, default=None,
                     help="folder for the axes' models and records, reused by later runs "
                     "(default: a fresh temporary folder)")  # fmt: skip
+    ap.add_argument("--keep", type=pathlib.Path, default=None,
+                    help="folder that keeps each record's CSV and its track output (track.csv, "
+                    "track.png, final.pt) to look at (default: a temporary folder)")  # fmt: skip
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        d = pathlib.Path(tmp)
+        d = args.keep or pathlib.Path(tmp)
+        d.mkdir(parents=True, exist_ok=True)
         cache = args.cache or d / "cache"
         cache.mkdir(parents=True, exist_ok=True)
         for m in args.machines:

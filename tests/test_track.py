@@ -300,8 +300,10 @@ def test_the_tracker_starts_from_the_filters_own_covariance() -> None:
     )
     both = {"estimator": {"state": {**state, "P_theta": reported, "filter_P_theta": own}}}
     assert torch.equal(_start(both, model, settings)[1], own)
+    assert torch.allclose(_start(both, model, settings)[2], torch.full((k,), 4e3**0.5))
     old = {"estimator": {"state": {**state, "P_theta": reported}}}
     assert torch.equal(_start(old, model, settings)[1], reported)
+    assert torch.equal(_start(old, model, settings)[2], torch.ones(k, dtype=torch.float64))
     bad = {
         "estimator": {
             "state": {**state, "P_theta": reported[:2, :2], "filter_P_theta": own * float("nan")}
@@ -310,3 +312,68 @@ def test_the_tracker_starts_from_the_filters_own_covariance() -> None:
     assert torch.equal(
         _start(bad, model, settings)[1], settings.reopen * torch.eye(k, dtype=torch.float64)
     )
+
+
+def test_the_sigma_shown_are_the_filters_times_the_runs_own_ratio(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """track.csv's σ are the tracking filter's times the checkpoint's reported/filter σ ratio
+    (at least 1), the filter itself unchanged by it: a checkpoint whose reported P_θθ is 9
+    times its filter's (and 1/4 of it for one parameter) tracks to the same values with σ 3
+    times (and 1 times) as wide; final.pt keeps both matrices, so a second `track` from it
+    shows the same scale."""
+    from torchfric.app.artifacts import save_checkpoint
+
+    raw = read_checkpoint(CHECKPOINT)
+    own = raw["estimator"]["state"]["P_theta"]
+    k = own.shape[0]
+    factor = torch.full((k,), 3.0, dtype=torch.float64)
+    factor[0] = 0.5  # a reported σ narrower than the filter's: shown as the filter's
+    for name, reported in (("same", own), ("wide", factor[:, None] * own * factor[None, :])):
+        state = {**raw["estimator"]["state"], "P_theta": reported, "filter_P_theta": own}
+        save_checkpoint(
+            tmp_path / f"{name}.pt", {**raw, "estimator": {**raw["estimator"], "state": state}}
+        )
+    arr = simulate_rig(RigParameters(), excitation("validation", duration=2.0, seed=5), seed=5)
+    _csv(tmp_path / "rec.csv", arr)
+    tables = {}
+    for name in ("same", "wide"):
+        out = tmp_path / f"out_{name}"
+        assert (
+            main(
+                [
+                    "track",
+                    str(tmp_path / f"{name}.pt"),
+                    str(tmp_path / "rec.csv"),
+                    "--out",
+                    str(out),
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
+        tables[name] = np.loadtxt(out / "track.csv", delimiter=",", skiprows=1)
+    same, wide = tables["same"], tables["wide"]
+    np.testing.assert_array_equal(same[:, 1::2], wide[:, 1::2])  # the values: the same filter
+    shown = np.where(np.arange(k) == 0, 1.0, 3.0)
+    np.testing.assert_allclose(wide[:, 2::2], same[:, 2::2] * shown, rtol=1e-12)
+    events = json.loads((tmp_path / "out_wide" / "events.json").read_text())
+    assert list(events["band_scale"].values()) == pytest.approx(list(shown), rel=1e-12)
+    final = read_checkpoint(tmp_path / "out_wide" / "final.pt")["estimator"]["state"]
+    expect = torch.tensor(shown)[:, None] * final["filter_P_theta"] * torch.tensor(shown)[None, :]
+    assert torch.allclose(final["P_theta"], expect, rtol=1e-12, atol=0)
+    again = tmp_path / "again"
+    assert (
+        main(
+            [
+                "track",
+                str(tmp_path / "out_wide" / "final.pt"),
+                str(tmp_path / "rec.csv"),
+                "--out",
+                str(again),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert list(
+        json.loads((again / "events.json").read_text())["band_scale"].values()
+    ) == pytest.approx(list(shown), rel=1e-9)

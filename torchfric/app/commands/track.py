@@ -6,8 +6,10 @@ run that made the checkpoint and the ``[track]`` settings of its config (``--set
 Into its own new directory it writes, as it goes:
 
 - ``track.csv``: ``t`` and every parameter's value and σ (physical units), a row every
-  ``--every`` samples;
-- ``events.json``: ``{"changes": [t, …], "detector": {…}}``, rewritten at each change;
+  ``--every`` samples; the σ are the filter's times the run's own ratio of reported to filter σ
+  (`band_scale`);
+- ``events.json``: ``{"changes": [t, …], "detector": {…}, "band_scale": {name: factor}}``,
+  rewritten at each change;
 - at the end: ``final.pt`` (an ordinary checkpoint of the last estimate: evaluate, simulate,
   export, train's ``model.init`` take it), ``track.png`` (the parameter tracks with ±2σ and the
   change times) and TensorBoard logs (the same tracks, per sample index).
@@ -97,7 +99,7 @@ class _Session:
         self.model, self.cfg, self.run, self.args = model, cfg, run, args
         self.settings = cfg.track  # a TrackSettings, checked (`sections.TrackConfig`)
         tuning = _tuning(raw, cfg, exp)
-        theta, P_theta = _start(raw, model, self.settings)
+        theta, P_theta, self.scale = _start(raw, model, self.settings)
         self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
                                every=args.every, compile=tuning.compile)  # fmt: skip
         self.measure = tuning.measure
@@ -152,7 +154,7 @@ class _Session:
         torch = self.torch
         thetas = torch.stack([r.theta for r in rows])
         values = self.model.to_physical(thetas)
-        variances = torch.stack([torch.diagonal(r.P_theta) for r in rows])
+        variances = torch.stack([torch.diagonal(r.P_theta) for r in rows]) * self.scale**2
         stds = physical_std(self.model, thetas, variances)
         table = torch.stack([values, stds], dim=-1).reshape(len(rows), -1).tolist()
         for row, cells in zip(rows, table, strict=True):
@@ -189,7 +191,8 @@ class _Session:
             )
         theta, P_theta = self.last
         final = self.model.set_theta(theta)
-        _final_checkpoint(final, self.cfg, theta, P_theta, self.run, self.tracker, self.seen)
+        _final_checkpoint(final, self.cfg, theta, (P_theta, self.scale), self.run, self.tracker,
+                          self.seen)  # fmt: skip
         figure = _track_figure(self.model.theta_names, self)
         from ..artifacts import pixels, png_from_pixels
 
@@ -205,6 +208,10 @@ class _Session:
             f"of {first_s:.2f} s that built or loaded the filter's C code; {seconds:.1f} s with "
             "the outputs)"
         )
+        wide = {n: f for n, f in zip(self.names, self.scale.tolist(), strict=True) if f > 1.0}
+        if wide:
+            factors = ", ".join(f"{n} ×{f:.3g}" for n, f in wide.items())
+            print(f"σ shown     the filter's × the run's reported/filter σ: {factors}")
         print("changes     " + (", ".join(f"{c:.3f} s" for c in self.tracker.changes) or "none"))
         for label, name in (("tracks", "track.csv"), ("events", "events.json"),
                             ("checkpoint", "final.pt"), ("figure", "track.png")):  # fmt: skip
@@ -223,7 +230,8 @@ class _Session:
                 "calibrate_s": self.settings.calibrate,
                 "holdoff_s": self.settings.holdoff,
             }
-        body = {"changes": list(self.tracker.changes), "detector": detector}
+        scale = dict(zip(self.names, self.scale.tolist(), strict=True))
+        body = {"changes": list(self.tracker.changes), "detector": detector, "band_scale": scale}
         atomic_write_text(self.run / "events.json", json.dumps(json_safe(body)[0], indent=1) + "\n")
 
     def _say(self, text: str) -> None:
@@ -231,9 +239,9 @@ class _Session:
             sys.stderr.write(f"  {text}\n")
 
 
-def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any]:
-    """θ and ``P_θθ`` to start from: the checkpoint's estimator state, else its θ with
-    ``reopen · I`` (output error keeps no covariance).
+def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any, Any]:
+    """θ and ``P_θθ`` to start from, and the scale of the σ the tracker shows: the checkpoint's
+    estimator state, else its θ with ``reopen · I`` (output error keeps no covariance).
 
     Of an EKF run's two matrices the tracker takes the filter's own (``filter_P_theta``), the
     belief a filter had at the end of its passes, and not the reported σ (``P_theta``): those
@@ -241,26 +249,59 @@ def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any]:
     filter's prior must not hold — a direction the data barely pins, given a variance 1e5
     times the filter's, lets that direction take up every change (and the detector, which
     reads the innovations, then sees none). A checkpoint without it (written before the
-    confidence stage, or by `track` itself) gives its ``P_theta``."""
+    confidence stage) gives its ``P_theta``.
+
+    The scale (`band_scale`) is what the run measured of its own filter: the reported σ over
+    the filter's, per parameter. The filter's σ on a record whose noise is coloured, or whose
+    friction the class draws approximately, are that much too narrow, during tracking as at
+    the run's end; the σ the tracker shows (track.csv, the figure, final.pt's ``P_theta``)
+    are its filter's times that factor, while the filter itself keeps its own belief."""
     import torch
 
     theta = model.get_theta()
     state = (raw.get("estimator") or {}).get("state") or {}
     k = theta.numel()
-    for key in ("filter_P_theta", "P_theta"):
-        P = state.get(key)
-        if P is not None and tuple(P.shape) == (k, k) and bool(torch.isfinite(P).all()):
-            return theta, torch.as_tensor(P, dtype=torch.float64).clone()
-    return theta, settings.reopen * torch.eye(k, dtype=torch.float64)
+    ones = torch.ones(k, dtype=torch.float64)
+
+    def usable(P: Any) -> bool:
+        return P is not None and tuple(P.shape) == (k, k) and bool(torch.isfinite(P).all())
+
+    own, reported = state.get("filter_P_theta"), state.get("P_theta")
+    if usable(own):
+        own = torch.as_tensor(own, dtype=torch.float64).clone()
+        scale = band_scale(reported, own) if usable(reported) else ones
+        return theta, own, scale
+    if usable(reported):
+        return theta, torch.as_tensor(reported, dtype=torch.float64).clone(), ones
+    return theta, settings.reopen * torch.eye(k, dtype=torch.float64), ones
 
 
-def _final_checkpoint(model, cfg, theta, P_theta, run, tracker, samples) -> None:  # type: ignore[no-untyped-def]
+def band_scale(reported: Any, own: Any) -> Any:
+    """Per parameter, the reported σ over the filter's own (``sqrt(diag(P_theta) /
+    diag(filter_P_theta))``), at least 1: the tracker never shows σ narrower than its
+    filter's."""
+    import torch
+
+    reported = torch.as_tensor(reported, dtype=torch.float64)
+    ratio = torch.diagonal(reported) / torch.diagonal(own)
+    ratio = torch.where(torch.isfinite(ratio) & (ratio > 1.0), ratio, torch.ones_like(ratio))
+    return ratio.sqrt()
+
+
+def _final_checkpoint(model, cfg, theta, belief, run, tracker, samples) -> None:  # type: ignore[no-untyped-def]
+    """final.pt: the last θ, its shown covariance (``P_theta``: the filter's scaled by
+    `band_scale`, as track.csv shows it) and the filter's own (``filter_P_theta``: a later
+    `track` starts from it and finds the same scale)."""
     from ..artifacts import build_checkpoint, save_checkpoint
 
+    P_theta, scale = belief
+    shown = scale[:, None] * P_theta * scale[None, :]
+    state = {"method": "track", "theta": theta.clone(), "P_theta": shown,
+             "filter_P_theta": P_theta.clone()}  # fmt: skip
     payload = build_checkpoint(
         model,
         config=cfg,
-        estimator_state={"method": "track", "theta": theta.clone(), "P_theta": P_theta.clone()},
+        estimator_state=state,
         metrics={
             "dt": float(tracker.dt),
             "inertia": float(model.inertia.detach()),
