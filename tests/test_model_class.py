@@ -337,3 +337,35 @@ def test_a_dynamic_model_whose_filters_all_diverge_leaves_the_static_one(
     assert r.chosen == "none" and r.t == -math.inf and r.rmse["lugre"] == math.inf
     row = r.to_dict()["table"][1]
     assert row["dynamic"] == "lugre" and row["bic"] == math.inf and not row["chosen"]
+
+
+def test_a_long_record_is_identified_on_excerpts_and_scored_on_all_its_held_out_end() -> None:
+    """Up to `COMPARE_SAMPLES` in all, `compare_dynamics` identifies the classes on the first
+    70 % of the records itself (None: nothing changes for records up to 100 s at 1 kHz);
+    beyond, on four excerpts of each record's first 70 %, from its start to its end, each
+    record its share of 70 % of the budget, a short record's whole; the summary says so."""
+    from torchfric.app.run.autosize import COMPARE_PIECES, comparison_heads
+
+    def record(n: int, name: str) -> Experiment:
+        t = torch.arange(n, dtype=torch.float64) * 1e-3
+        return make_experiment(t, torch.zeros(n), torch.sin(t), name=name)
+
+    assert comparison_heads([record(30_000, "a"), record(40_000, "b")], 100_000) is None
+    long, tiny = record(600_000, "long"), record(3_000, "tiny")
+    pieces = comparison_heads([long, tiny], 100_000)
+    head = long.n - round(HOLDOUT * long.n)
+    assert len(pieces) == COMPARE_PIECES + 1 and pieces[-1].n == tiny.n - round(HOLDOUT * tiny.n)
+    length = int((1 - HOLDOUT) * 100_000 * head / (head + pieces[-1].n)) // COMPARE_PIECES
+    starts = [round(float(p.t[0]) / 1e-3) for p in pieces[:-1]]
+    assert [p.n for p in pieces[:-1]] == [length] * COMPARE_PIECES
+    assert starts[0] == 0 and starts[-1] + length == head  # within the identification part
+    assert max(abs(b - a - (head - length) / 3) for a, b in zip(starts[:-1], starts[1:], strict=True)) <= 1
+    assert sum(p.n for p in pieces[:-1]) <= (1 - HOLDOUT) * 100_000
+    row = {"dynamic": "none", "parameters": 8, "rmse_q": 1e-3, "bic": -1.0, "chosen": True}
+    result = {"chosen": "none", "windows": 9, "window_seconds": 0.05, "holdout": 0.3,
+              "seconds": 1.0, "t_min": 2.0, "table": [row], "t": 0.0, "gain": 0.0,
+              "excerpts": {"records": 5, "samples": 70_000, "of": 422_100}}  # fmt: skip
+    assert dynamic_lines(result)[1] == (
+        "  both identified on the first 70% of each record (5 excerpts: 70,000 of its 422,100 "
+        "samples)"
+    )

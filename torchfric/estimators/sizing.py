@@ -33,8 +33,8 @@ The friction class (``model.dynamic = "auto"``) is chosen here as well, by `comp
 and not by BIC: on a static Stribeck axis the one-step likelihood of the LuGre filter beats the
 static filter's by more than its ln N penalty (the bristle state's extra freedom, not a better
 model), so each class is identified on the first 70 % of the records (by `compare_sizes`, the
-same ensemble and passes) and scored by how well it predicts the held-out rest in 0.05-s
-open-loop windows from its own filter (`torchfric.estimators.selection.window_errors`). Those
+same ensemble and passes; on a long record, excerpts of it) and scored by how well it predicts
+the held-out rest in 0.05-s open-loop windows from its own filter (`selection.window_errors`). Those
 windows also reward a model that sticks, which a static curve through zero cannot; so LuGre is
 kept only when its bristles are seen as well: their travel through a reversal, ``2 g(0)/σ0``,
 must lie between the records' position step and span (`torchfric.models.lugre.bristles_seen`:
@@ -64,14 +64,7 @@ from ..models.lugre import bristle_travel, bristles_seen
 from .ekf import FilterFailure
 from .ensemble import _filter_members, make_masked_step, member_grid
 from .observers import Callback
-from .passes import (
-    DIVERGED,
-    Filtering,
-    PassLedger,
-    measured_data,
-    prepared,
-    run_passes,
-)
+from .passes import DIVERGED, Filtering, PassLedger, measured_data, prepared, run_passes
 from .selection import window_errors
 from .settings import EKFTuning, EnsembleSpec
 
@@ -409,12 +402,14 @@ def compare_dynamics(
     holdout: float = HOLDOUT,
     window_seconds: float = WINDOW_SECONDS,
     device: torch.device | None = None,
+    heads: Sequence[Experiment] | None = None,
 ) -> DynamicsResult:
     """Static or dynamic friction, from the identification records alone.
 
     Both models are identified (`compare_sizes`: the same ensemble and pass rules) on the first
-    ``1 − holdout`` of every record (`held_out_heads`; `static` and `dynamic` are their starts,
-    made from those heads alone); the rest is held out. There each model's filter, θ fixed,
+    ``1 − holdout`` of every record (`held_out_heads`, or `heads`: parts of them, e.g. a long
+    record's excerpts; `static` and `dynamic` are their starts, made from those alone); the
+    rest is held out. There each model's filter, θ fixed,
     starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
     mean squared position errors are compared pair by pair. The dynamic model is kept only when
     its windows predict better by more than `T_MIN` standard errors of the mean difference and
@@ -442,7 +437,7 @@ def compare_dynamics(
             f"{max(lengths) + 1}-sample window there; give longer records, or set "
             'model.dynamic = "none" or "lugre"'
         )
-    heads = held_out_heads(exps, holdout)
+    heads = held_out_heads(exps, holdout) if heads is None else list(heads)
     picks = [(exps[i], cuts[i], lengths[i]) for i in scored]
     scores, thetas, mse = _identify_and_predict(
         {"none": static, dynamic.dynamic: dynamic}, heads, picks, tuning, spec, device

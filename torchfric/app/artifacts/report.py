@@ -219,6 +219,17 @@ def _sizes(metrics: Mapping[str, Any]) -> str:
     return f"<h2>Model size</h2><table>{head}{''.join(rows)}</table>{note}"
 
 
+def _cut(dyn: Mapping[str, Any]) -> str:
+    """The excerpts a long record's comparison was made on (``dynamics.excerpts``), or ""."""
+    cut = dyn.get("excerpts")
+    if not cut:
+        return ""
+    return (
+        f" ({cut['records']} excerpts spread over it: {cut['samples']:,} of its {cut['of']:,} "
+        "samples)"
+    )
+
+
 def _dynamics(metrics: Mapping[str, Any]) -> str:
     """The comparison of ``model.dynamic = "auto"`` (metrics' ``dynamics``); "" without one."""
     dyn = metrics.get("dynamics")
@@ -240,7 +251,8 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
     )
     note = (
         f'<p class="note">model.dynamic = "auto": both classes were identified on the first '
-        f"{1 - dyn['holdout']:.0%} of each identification record; each then predicted the last "
+        f"{1 - dyn['holdout']:.0%} of each identification record{_e(_cut(dyn))}; each then "
+        f"predicted the last "
         f"{dyn['holdout']:.0%} in {_e(dyn['windows'])} open-loop windows of "
         f"{dyn['window_seconds']:g} s, each started from its own filter's estimate. LuGre's "
         f"mean squared error was {_num(100 * abs(gain), '.1f')} % "
