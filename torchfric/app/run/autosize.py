@@ -216,11 +216,11 @@ def comparison_heads(train: list[Any], budget: int = COMPARE_SAMPLES) -> list[An
     70 % of each record itself) up to `budget` samples in all, so every record up to 100 s at
     1 kHz is compared as before, bit for bit; beyond, `COMPARE_PIECES` excerpts of each
     record's first 70 %, evenly spread from its start to its end, of its share of 70 % of the
-    budget. The held-out windows stay the whole last 30 % of every record: the comparison keeps
-    all its windows and so its power (a 300-s LuGre rig record with excerpts held out as well
-    kept static at t = 0.9 where the whole record gives LuGre at t = 3.0); only the two classes'
-    identification, the comparison's cost (static and LuGre ensembles, 0.25 ms a sample on
-    the 2-core machine of docs/results.md), is bounded."""
+    budget. The held-out windows stay the whole last 30 % of every record, all of them (excerpts
+    that held out their own ends would keep a third); only the two classes' identification, the
+    comparison's cost (static and LuGre ensembles, 0.25 ms a sample on the 2-core machine of
+    docs/results.md), is bounded. The verdict then moves with the data the candidates were
+    identified on, as it does with the window length (docs/results.md, "Long records")."""
     if sum(e.n for e in train) <= budget:
         return None
     heads = held_out_heads(train, HOLDOUT)
