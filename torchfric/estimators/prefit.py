@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from torch.func import grad, vmap
 
-from ..data import Experiment, zero_phase_acceleration, zero_phase_derivative
+from ..data import Experiment, quiet_cutoff_hz, zero_phase_acceleration, zero_phase_derivative
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.friction import make_friction
@@ -69,6 +69,7 @@ class PrefitResult:
     relative_residual: float  # ‖residual‖ / ‖c_m u‖ on the used samples
     samples: int  # samples used (moving, away from the ends)
     iterations: int
+    cutoff_hz: float = math.nan  # the low-pass of q̇ and q̈ (`quiet_cutoff_hz`)
 
 
 def _regression_data(
@@ -421,7 +422,9 @@ def prefit(
         experiments: identification data (positions q and inputs u; velocity is re-derived).
         cutoff_hz: zero-phase low-pass cut-off for velocity and acceleration; ``None`` =
             `default_cutoff_hz` of the coarsest sample step (50 Hz at 1 kHz, 0.4 × Nyquist for
-            slowly sampled records such as the 40 Hz unbalanced disc).
+            slowly sampled records such as the 40 Hz unbalanced disc), lowered until the
+            records' position noise is at most 2 % of q̈'s variance (`quiet_cutoff_hz`: every
+            shipped record keeps the default).
         stick_fraction: samples with ``|q̇| < stick_fraction · max|q̇|`` are left out.
             At most `PREFIT_ROWS` of the rest are fitted (every s-th on longer records).
         iterations: Levenberg–Marquardt iterations per start.
@@ -432,8 +435,9 @@ def prefit(
     exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
     if not exps:
         raise TorchfricError("prefit needs at least one experiment")
-    if cutoff_hz is None:
-        cutoff_hz = default_cutoff_hz(max(e.dt for e in exps))
+    if cutoff_hz is None:  # lowered where the encoder's noise would bias the inertia
+        highest = default_cutoff_hz(max(e.dt for e in exps))
+        cutoff_hz = quiet_cutoff_hz([(e.q, e.dt) for e in exps], highest)
     q, v, a, u = _regression_data(exps, cutoff_hz, stick_fraction)
     stride = -(-q.numel() // PREFIT_ROWS)  # 1 below the cap: every row, bit for bit as before
     if stride > 1:
@@ -459,4 +463,4 @@ def prefit(
     c_fit = float(fitted.c_m.detach()) if model.estimate_c_m else 1.0  # torque units
     rms = c_fit * math.sqrt(cost / q.numel())
     rel = c_fit * math.sqrt(cost) / max(float((c_m * u).norm()), 1e-300)
-    return PrefitResult(fitted, rms, rel, q.numel(), its)
+    return PrefitResult(fitted, rms, rel, q.numel(), its, cutoff_hz)
