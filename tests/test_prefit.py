@@ -269,6 +269,9 @@ def test_a_coarse_encoder_on_a_slow_axis_lowers_the_cutoff_and_keeps_the_inertia
     assert 10.0 < found.cutoff_hz < 25.0
     assert float(found.model.inertia.detach()) == pytest.approx(heavy.inertia, rel=0.03)
     assert float(prefit(start, exp, cutoff_hz=50.0).model.inertia) < 0.5 * heavy.inertia
+    # never below `lowest` (the pre-fit's: the filter's ends leave half of the shortest record)
+    q = (exp.q, exp.dt)
+    assert quiet_cutoff_hz([q], 50.0, lowest=30.0) == pytest.approx(50.0 * 10**-0.2)
     rig = rig_experiment("identification")
     assert quiet_cutoff_hz([(torch.as_tensor(rig["q"]), RigParameters().dt)], 50.0) == 50.0
 

@@ -184,36 +184,41 @@ def settling_samples(method: str, dt: float, cutoff_hz: float | None = None) -> 
 
 
 def quiet_cutoff_hz(
-    records: Sequence[tuple[ArrayLike, float]], highest: float, share: float = 0.02
+    records: Sequence[tuple[ArrayLike, float]],
+    highest: float,
+    share: float = 0.02,
+    lowest: float = 0.0,
 ) -> float:
-    """The highest zero-phase cut-off, from `highest` down by steps of 10^0.1 to `highest`/25,
-    at which the position noise in ``(q, dt)`` of every record puts at most `share` of the
-    signal's variance into `zero_phase_acceleration`; the lowest step when none does.
+    """The highest zero-phase cut-off, from `highest` down by steps of 10^0.1 to `highest`/25
+    and not below `lowest`, at which the position noise of the records ``(q, dt)`` puts at most
+    `share` of the signal's variance into `zero_phase_acceleration`, pooled over the records as
+    a regression stacks them; the lowest step when none does.
 
     Inverse-dynamics least squares with a noisy q̈ biases the inertia towards 0 by about that
     share (errors in the regressor): a coarse encoder on a slow axis (4096 counts, J 0.5 kg m²,
     peaks of 4 rad/s²) gave q̈ noise 2.6 times its signal at 50 Hz and a pre-fitted inertia of
-    0.116 for 0.5. The noise is the record's own, white: ``σ² = var(Δ²q) / 6`` (a count's
+    0.116 for 0.5. The noise is each record's own, white: ``σ² = var(Δ²q) / 6`` (a count's
     quantisation while the axis moves, or an analogue sensor's noise; the signal's own second
-    difference is ``q̈ dt²``, far below), its share `σ² g(fc)` over ``var(q̈_fc) − σ² g(fc)``,
-    with g the filter's gain on unit white noise (a fixed 20,000-sample draw). Up to 200,000
-    samples of each record are read."""
+    difference is ``q̈ dt²``, far below), through the filter's gain on unit white noise (a fixed
+    20,000-sample draw), against ``var(q̈_fc)`` minus that. Up to 200,000 samples of each
+    record are read."""
     cap, draws = 200_000, np.random.default_rng(0).standard_normal(20_000)
     found = highest
     for step in range(15):
         fc = highest * 10 ** (-0.1 * step)
-        worst = 0.0
+        if step and fc < lowest:
+            break
+        noise = signal = 0.0
         for q, dt in records:
             qa = _signal(q, "quiet_cutoff_hz: q", 5)[..., :cap]
-            noise = float(np.var(np.diff(qa, 2))) / 6.0
             edge = math.ceil(3.0 / (fc * dt)) + 1
-            if qa.shape[-1] <= 2 * edge + 2 or not noise > 0:
+            if qa.shape[-1] <= 2 * edge + 2:
                 continue
             a = zero_phase_acceleration(qa, dt, fc).numpy()[edge:-edge]
             unit = zero_phase_acceleration(draws, dt, fc).numpy()[edge:-edge]
-            n = noise * float(np.var(unit))
-            worst = max(worst, n / max(float(np.var(a)) - n, 1e-300))
+            n = float(np.var(np.diff(qa, 2))) / 6.0 * float(np.var(unit))
+            noise, signal = noise + n * a.size, signal + float(np.var(a)) * a.size
         found = fc
-        if worst <= share:
+        if noise <= share * max(signal - noise, 0.0):
             break
     return found

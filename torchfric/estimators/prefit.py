@@ -435,9 +435,10 @@ def prefit(
     exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
     if not exps:
         raise TorchfricError("prefit needs at least one experiment")
-    if cutoff_hz is None:  # lowered where the encoder's noise would bias the inertia
-        highest = default_cutoff_hz(max(e.dt for e in exps))
-        cutoff_hz = quiet_cutoff_hz([(e.q, e.dt) for e in exps], highest)
+    if cutoff_hz is None:  # lowered where the encoder's noise would bias the inertia, while
+        highest = default_cutoff_hz(max(e.dt for e in exps))  # the filter's ends (3 periods
+        lowest = max(12.0 / (e.n * e.dt) for e in exps)  # each) leave half of every record
+        cutoff_hz = quiet_cutoff_hz([(e.q, e.dt) for e in exps], highest, lowest=lowest)
     q, v, a, u = _regression_data(exps, cutoff_hz, stick_fraction)
     stride = -(-q.numel() // PREFIT_ROWS)  # 1 below the cap: every row, bit for bit as before
     if stride > 1:

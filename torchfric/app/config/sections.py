@@ -240,7 +240,9 @@ class ModelConfig(TableSection):
             static model (`torchfric.app.run.autosize`; the comparison is in metrics.json's
             ``dynamics``, the summary and report.html). The validation and test records are
             not read. A run then trains the chosen class on all the data (about 2.4× the time
-            of a run of one class).
+            of a run of one class). Beyond 100,000 samples in all, both classes are
+            identified on four excerpts of each record's first 70 % (70,000 samples in all)
+            and scored on the whole held-out 30 % (`comparison_heads`; ``dynamics.excerpts``).
         sigma0: initial bristle stiffness σ0 [torque per unit of q] of "lugre"; ``None`` = from
             the data: the pre-sliding range starts at one position step (encoder count) of the
             identification records, ``σ0 = |F(v_s)| / Δq`` with F the starting model's static
