@@ -202,22 +202,23 @@ def quiet_cutoff_hz(
     difference is ``q̈ dt²``, far below), through the filter's gain on unit white noise (a fixed
     20,000-sample draw), against ``var(q̈_fc)`` minus that. Up to 200,000 samples of each
     record are read."""
-    cap, draws = 200_000, np.random.default_rng(0).standard_normal(20_000)
+    draws = np.random.default_rng(0).standard_normal(20_000)
+    qs = [(qa, dt, float(np.var(np.diff(qa, 2))) / 6.0)
+          for qa, dt in ((_signal(q, "quiet_cutoff_hz: q", 5)[..., :200_000], dt)
+                         for q, dt in records)]  # fmt: skip
     found = highest
     for step in range(15):
         fc = highest * 10 ** (-0.1 * step)
         if step and fc < lowest:
             break
         noise = signal = 0.0
-        for q, dt in records:
-            qa = _signal(q, "quiet_cutoff_hz: q", 5)[..., :cap]
+        for qa, dt, white in qs:
             edge = math.ceil(3.0 / (fc * dt)) + 1
             if qa.shape[-1] <= 2 * edge + 2:
                 continue
             a = zero_phase_acceleration(qa, dt, fc).numpy()[edge:-edge]
-            unit = zero_phase_acceleration(draws, dt, fc).numpy()[edge:-edge]
-            n = float(np.var(np.diff(qa, 2))) / 6.0 * float(np.var(unit))
-            noise, signal = noise + n * a.size, signal + float(np.var(a)) * a.size
+            gain = float(np.var(zero_phase_acceleration(draws, dt, fc).numpy()[edge:-edge]))
+            noise, signal = noise + white * gain * a.size, signal + float(np.var(a)) * a.size
         found = fc
         if noise <= share * max(signal - noise, 0.0):
             break
