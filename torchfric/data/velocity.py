@@ -203,9 +203,10 @@ def quiet_cutoff_hz(
     20,000-sample draw), against ``var(q̈_fc)`` minus that. Up to 200,000 samples of each
     record are read."""
     draws = np.random.default_rng(0).standard_normal(20_000)
-    qs = [(qa, dt, float(np.var(np.diff(qa, 2))) / 6.0)
-          for qa, dt in ((_signal(q, "quiet_cutoff_hz: q", 5)[..., :200_000], dt)
-                         for q, dt in records)]  # fmt: skip
+    qs = []
+    for q, dt in records:  # each record's first 200,000 samples and its white noise σ²
+        qa = _signal(q, "quiet_cutoff_hz: q", 5)[..., :200_000]
+        qs.append((qa, dt, float(np.var(np.diff(qa, 2))) / 6.0))
     found = highest
     for step in range(15):
         fc = highest * 10 ** (-0.1 * step)
