@@ -166,7 +166,7 @@ def result_warnings(
             f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
             f"{cfg.estimator.tolerance:g} × the parameters: raise estimator.passes (each pass over "
             f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
-            "meanwhile"
+            f"meanwhile{_noisy_velocity(cfg, train or [])}"
         )
     ident = metrics.get("identifiability") or {}
     out += [m for m in ident.get("messages", []) if not m.startswith("(within")]
@@ -175,6 +175,39 @@ def result_warnings(
     if far:
         out.append(far)
     return out
+
+
+NOISY_VELOCITY = 0.02  # the velocity noise, as a share of the data's v95, worth a hint
+
+
+def _noisy_velocity(cfg: Config, train: list[Experiment]) -> str:
+    """For the not-converged warning: where the velocity the filter measures carries white
+    noise above `NOISY_VELOCITY` of the records' v95 (`velocity_noise`: a coarse encoder), the
+    cut-off at which it would carry at most 1 %. A heavy axis with a 4096-count encoder (3.1 %
+    at 200 Hz) did not converge in 100 passes and converged in 3 at 100, 50 or 20 Hz
+    (docs/results.md); the rig is at 0.7 %."""
+    from ...data.velocity import DEFAULT_CUTOFF_HZ, velocity_noise
+
+    method = cfg.data.velocity
+    found = speed_quantiles(data_speeds(train), [0.95])
+    if method not in DEFAULT_CUTOFF_HZ or not found or not found[0] > 0 or not train:
+        return ""
+    cutoff = cfg.data.velocity_cutoff_hz or DEFAULT_CUTOFF_HZ[method]
+    longest = max(train, key=lambda e: e.n)
+    share = velocity_noise(longest.q, longest.dt, method, cutoff) / found[0]
+    if not share > NOISY_VELOCITY:
+        return ""
+    quieter = cutoff
+    while (
+        quieter > cutoff / 25
+        and velocity_noise(longest.q, longest.dt, method, quieter) > 0.01 * found[0]
+    ):
+        quieter *= 10**-0.1
+    return (
+        f"; the velocity the filter measures carries noise of {share:.1%} of the data's v95 "
+        f'(data.velocity = "{method}" at {cutoff:g} Hz, from the position\'s steps), which '
+        f"can bias it away: try data.velocity_cutoff_hz = {float(f'{quieter:.2g}'):g}"
+    )
 
 
 def _far_from_maximum(final: ArmModel, metrics: dict[str, Any]) -> str | None:
