@@ -203,11 +203,11 @@ def quiet_cutoff_hz(
     difference is ``q̈ dt²``, far below), through the filter's gain on unit white noise (a fixed
     20,000-sample draw), against ``var(q̈_fc)`` minus that. Up to 200,000 samples of each
     record are read."""
-    draws = np.random.default_rng(0).standard_normal(20_000)
+    draws = _unit_draws()
     qs = []
     for q, dt in records:  # each record's first 200,000 samples and its white noise σ²
         qa = _signal(q, "quiet_cutoff_hz: q", 5)[..., :200_000]
-        qs.append((qa, dt, float(np.var(np.diff(qa, 2))) / 6.0))
+        qs.append((qa, dt, _white_variance(qa)))
     found = highest
     for step in range(15):
         fc = highest * 10 ** (-0.1 * step)
@@ -234,7 +234,18 @@ def velocity_noise(q: ArrayLike, dt: float, method: str, cutoff_hz: float | None
     On a 4096-count encoder at 1 kHz (the heavy axis of docs/results.md) it gives 0.41 rad/s
     at 200 Hz, where the reconstructed velocity is 0.42 rad/s off the truth."""
     qa = _signal(q, "velocity_noise: q", 5)[..., :200_000]
-    draws = np.random.default_rng(0).standard_normal(20_000)
-    unit = reconstruct_velocity(draws, dt, method, cutoff_hz).numpy()
+    unit = reconstruct_velocity(_unit_draws(), dt, method, cutoff_hz).numpy()
     skip = settling_samples(method, dt, cutoff_hz)
-    return math.sqrt(float(np.var(np.diff(qa, 2))) / 6.0 * float(np.var(unit[skip:])))
+    return math.sqrt(_white_variance(qa) * float(np.var(unit[skip:])))
+
+
+def _white_variance(q: np.ndarray) -> float:
+    """The variance σ² of white noise on the positions `q`: ``var(Δ²q) / 6`` (white noise's
+    second difference has variance 6σ²; a motion's own is ``q̈ dt²``, far below)."""
+    return float(np.var(np.diff(q, 2))) / 6.0
+
+
+def _unit_draws() -> np.ndarray:
+    """A fixed draw of unit white noise (20,000 samples) whose filtered variance is a filter's
+    gain on white noise."""
+    return np.random.default_rng(0).standard_normal(20_000)
