@@ -278,7 +278,7 @@ def test_a_curve_that_pushes_the_axis_near_rest_is_named() -> None:
     """Friction is passive (F q̇ >= 0). The belt stage's static fit drew its stick as a negative
     lobe below 2.4 mm/s (−8.8 tanh(1760 q̇) under +12 tanh(77 q̇)): named with the speeds and the
     depth; a Stribeck curve (a positive sum of tanh) and the shipped rig model are not."""
-    from torchfric.app.run.assessment import _active_friction
+    from torchfric.app.run.assessment import _active_friction, _v95
     from torchfric.data import make_experiment
     from torchfric.models.arm import ArmModel
 
@@ -289,7 +289,7 @@ def test_a_curve_that_pushes_the_axis_near_rest_is_named() -> None:
     def model(w1: list[float], w2: list[float]) -> ArmModel:
         return ArmModel(OddTanhFriction(2, w1=w1, w2=w2), inertia=1.8, viscous=15.0, c_m=6.0)
 
-    (line,) = _active_friction(model([1760.0, 77.0], [-8.8, 12.0]), [exp])
+    (line,) = _active_friction(model([1760.0, 77.0], [-8.8, 12.0]), _v95([exp]))
     assert line.startswith("the friction curve pushes the axis instead of braking it at ")
     low, high = (float(x) for x in line.split(" at ")[1].split(" (")[0].split(" <= |q̇| <= "))
 
@@ -303,7 +303,7 @@ def test_a_curve_that_pushes_the_axis_near_rest_is_named() -> None:
         a, b = (a, 0.5 * (a + b)) if odd(0.5 * (a + b)) > 0 else (0.5 * (a + b), b)
     assert low == pytest.approx(1e-5 * float(torch.quantile(v.abs(), 0.95)), rel=1e-2)
     assert high < a <= high * 1.03 and 'model.dynamic = "lugre"' in line
-    assert _active_friction(model([200.0, 20.0], [2.0, 4.0]), [exp]) == []
+    assert _active_friction(model([200.0, 20.0], [2.0, 4.0]), _v95([exp])) == []
     root = pathlib.Path(__file__).resolve().parents[1]
     rig = torchfric.load_checkpoint(root / "checkpoints" / "arm_tanh_ekf.pt")
-    assert _active_friction(rig, [exp]) == [] and _active_friction(rig, []) == []
+    assert _active_friction(rig, _v95([exp])) == [] and _active_friction(rig, _v95([])) == []

@@ -53,15 +53,19 @@ def _bound_warnings(cfg: Config, final: ArmModel, inertia: float) -> list[str]:
     return []
 
 
-def _active_friction(final: ArmModel, train: list[Experiment]) -> list[str]:
+def _v95(train: list[Experiment]) -> float:
+    """The records' 95th-percentile |q̇|, as `velocity_scale` reads it (0 without records)."""
+    found = speed_quantiles(data_speeds(train), [0.95])
+    return found[0] if found else 0.0
+
+
+def _active_friction(final: ArmModel, speed: float) -> list[str]:
     """Friction that drives the axis instead of braking it: the steady-state friction's odd
-    part (offset and asymmetric slope are even) below zero somewhere in ``0 < q̇ <= v95`` of
-    the records `train` (beyond 0.1 % of its largest value, against rounding). A passive
+    part (offset and asymmetric slope are even) below zero somewhere in ``0 < q̇ <= speed``
+    (the records' v95; beyond 0.1 % of its largest value, against rounding). A passive
     friction has ``F q̇ >= 0``; a static curve fitted to a record that sticks can draw the stick
     as a negative lobe near rest (a belt-driven stage of a user walk: −4.7 N below 2.4 mm/s,
     where its static friction is +9 N), which simulates as a push at every start."""
-    found = speed_quantiles(data_speeds(train), [0.95])  # v95, as `velocity_scale` reads it
-    speed = found[0] if found else 0.0
     if not speed > 0:
         return []
     v = torch.logspace(-5.0, 0.0, 501, dtype=torch.float64) * speed
@@ -137,7 +141,8 @@ def result_warnings(
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
-    out += _active_friction(final, train or [])
+    v95 = _v95(train or [])
+    out += _active_friction(final, v95)
     out += _uninformed(cfg, final, covariance, start, metrics)
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
@@ -166,7 +171,7 @@ def result_warnings(
             f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
             f"{cfg.estimator.tolerance:g} × the parameters: raise estimator.passes (each pass over "
             f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
-            f"meanwhile{_noisy_velocity(cfg, train or [])}"
+            f"meanwhile{_noisy_velocity(cfg, train or [], v95)}"
         )
     ident = metrics.get("identifiability") or {}
     out += [m for m in ident.get("messages", []) if not m.startswith("(within")]
@@ -180,7 +185,7 @@ def result_warnings(
 NOISY_VELOCITY = 0.02  # the velocity noise, as a share of the data's v95, worth a hint
 
 
-def _noisy_velocity(cfg: Config, train: list[Experiment]) -> str:
+def _noisy_velocity(cfg: Config, train: list[Experiment], v95: float) -> str:
     """For the not-converged warning: where the velocity the filter measures carries white
     noise above `NOISY_VELOCITY` of the records' v95 (`velocity_noise`: a coarse encoder), the
     cut-off at which it would carry at most 1 %. A heavy axis with a 4096-count encoder (3.1 %
@@ -189,18 +194,17 @@ def _noisy_velocity(cfg: Config, train: list[Experiment]) -> str:
     from ...data.velocity import DEFAULT_CUTOFF_HZ, velocity_noise
 
     method = cfg.data.velocity
-    found = speed_quantiles(data_speeds(train), [0.95])
-    if method not in DEFAULT_CUTOFF_HZ or not found or not found[0] > 0 or not train:
+    if method not in DEFAULT_CUTOFF_HZ or not v95 > 0 or not train:
         return ""
     cutoff = cfg.data.velocity_cutoff_hz or DEFAULT_CUTOFF_HZ[method]
     longest = max(train, key=lambda e: e.n)
-    share = velocity_noise(longest.q, longest.dt, method, cutoff) / found[0]
+    share = velocity_noise(longest.q, longest.dt, method, cutoff) / v95
     if not share > NOISY_VELOCITY:
         return ""
     quieter = cutoff
     while (
         quieter > cutoff / 25
-        and velocity_noise(longest.q, longest.dt, method, quieter) > 0.01 * found[0]
+        and velocity_noise(longest.q, longest.dt, method, quieter) > 0.01 * v95
     ):
         quieter *= 10**-0.1
     return (
