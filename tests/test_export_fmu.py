@@ -131,7 +131,7 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> dict:
         for key, (model, method, substeps, _) in cases.items():
             export_c(model, folder / f"{key}.c", method=method, substeps=substeps)
             built[key] = _compile(folder, key)
-            reference[key] = _reference(model, t, u, method, substeps)
+            reference[key] = _reference(model, t, u, method, substeps, engine="compiled")
         _, err = client.communicate(timeout=600)
     finally:
         client.kill()

@@ -27,6 +27,8 @@ __all__ = [
     "settling_samples",
     "quiet_cutoff_hz",
     "velocity_noise",
+    "quieter_cutoff_hz",
+    "NOISY_VELOCITY",
     "VELOCITY_METHODS",
     "DEFAULT_CUTOFF_HZ",
 ]
@@ -198,9 +200,9 @@ def quiet_cutoff_hz(
     Inverse-dynamics least squares with a noisy q̈ biases the inertia towards 0 by about that
     share (errors in the regressor): a coarse encoder on a slow axis (4096 counts, J 0.5 kg m²,
     peaks of 4 rad/s²) gave q̈ noise 2.6 times its signal at 50 Hz and a pre-fitted inertia of
-    0.116 for 0.5. The noise is each record's own, white: ``σ² = var(Δ²q) / 6`` (a count's
-    quantisation while the axis moves, or an analogue sensor's noise; the signal's own second
-    difference is ``q̈ dt²``, far below), through the filter's gain on unit white noise (a fixed
+    0.116 for 0.5. The noise is each record's own, white: ``σ² = var(Δ⁴q) / 70``
+    (`_white_variance`: a count's quantisation while the axis moves, or an analogue sensor's
+    noise), through the filter's gain on unit white noise (a fixed
     20,000-sample draw), against ``var(q̈_fc)`` minus that. Up to 200,000 samples of each
     record are read."""
     draws = _unit_draws()
@@ -229,7 +231,7 @@ def quiet_cutoff_hz(
 
 def velocity_noise(q: ArrayLike, dt: float, method: str, cutoff_hz: float | None = None) -> float:
     """The standard deviation of the noise that `reconstruct_velocity` carries from the record's
-    white position noise, ``σ² = var(Δ²q) / 6`` (see `quiet_cutoff_hz`), through `method`'s
+    white position noise, ``σ² = var(Δ⁴q) / 70`` (`_white_variance`), through `method`'s
     gain on unit white noise (a fixed 20,000-sample draw); up to 200,000 samples are read.
     On a 4096-count encoder at 1 kHz (the heavy axis of docs/results.md) it gives 0.41 rad/s
     at 200 Hz, where the reconstructed velocity is 0.42 rad/s off the truth."""
@@ -239,10 +241,43 @@ def velocity_noise(q: ArrayLike, dt: float, method: str, cutoff_hz: float | None
     return math.sqrt(_white_variance(qa) * float(np.var(unit[skip:])))
 
 
+# The velocity noise (`velocity_noise`), as a share of the data's 95th-percentile speed, above
+# which a cut-off is worth lowering (`quieter_cutoff_hz`), and the share it is lowered to.
+NOISY_VELOCITY = 0.02
+QUIET_VELOCITY = 0.01
+
+
+def quieter_cutoff_hz(
+    q: ArrayLike, dt: float, method: str, cutoff_hz: float, v95: float
+) -> tuple[float, float] | None:
+    """``(share, cut-off)`` when `method`'s velocity at `cutoff_hz` carries noise
+    (`velocity_noise`) above `NOISY_VELOCITY` of the speed `v95`: that share, and the highest
+    cut-off, in steps of 10^0.1 down to `cutoff_hz`/25, whose noise is at most `QUIET_VELOCITY`
+    of it (two significant digits). None for a quieter record, no speed or a method without a
+    cut-off. A heavy axis with a 4096-count encoder (3.1 % at 200 Hz) did not converge in 100
+    passes at 200 Hz and converged in 3 at 100, 50 or 20 Hz (docs/results.md); the built-in
+    rig is at 0.7 %."""
+    if method not in DEFAULT_CUTOFF_HZ or not v95 > 0:
+        return None
+    share = velocity_noise(q, dt, method, cutoff_hz) / v95
+    if not share > NOISY_VELOCITY:
+        return None
+    quieter = cutoff_hz
+    while (
+        quieter > cutoff_hz / 25 and velocity_noise(q, dt, method, quieter) > QUIET_VELOCITY * v95
+    ):
+        quieter *= 10**-0.1
+    return share, float(f"{quieter:.2g}")
+
+
 def _white_variance(q: np.ndarray) -> float:
-    """The variance σ² of white noise on the positions `q`: ``var(Δ²q) / 6`` (white noise's
-    second difference has variance 6σ²; a motion's own is ``q̈ dt²``, far below)."""
-    return float(np.var(np.diff(q, 2))) / 6.0
+    """The variance σ² of white noise on the positions `q`: ``var(Δ⁴q) / 70`` (white noise's
+    fourth difference has variance C(8, 4)·σ² = 70σ²; a motion's own is ``q⁽⁴⁾ dt⁴``, which
+    falls as ``(ω dt)⁴``). The second difference (``var(Δ²q) / 6``, used until 2026-11-28) took
+    the motion for noise where the sampling is slow: the unbalanced disc at 40 Hz read 5.7 % of
+    its v95 as velocity noise, 0.6 % by the fourth; both read 3.1 % on a 4096-count encoder at
+    1 kHz, where quantisation is the noise."""
+    return float(np.var(np.diff(q, 4))) / 70.0
 
 
 def _unit_draws() -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings, load_segments
 from ...data.lab import nice_period, wrap_jumps
 from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, split_unit
+from ...data.velocity import quieter_cutoff_hz, reconstruct_velocity
 from ...errors import TorchfricError, shorten
 from ..config import toml_value
 
@@ -42,6 +43,8 @@ __all__ = [
     "FAST_SPEED",
     "MS_STEP",
     "map_columns",
+    "noisy_cutoff",
+    "parse_c_m",
     "parse_columns",
     "PositionGuess",
     "position_unit_guess",
@@ -262,12 +265,45 @@ def position_unit_guess(
     return PositionGuess("rad", why, notes=notes, wrap_period=period)
 
 
+def parse_c_m(value: float | str | None) -> float:
+    """The motor constant given on the command line (`--c-m`): required, positive."""
+    if value is None:
+        raise TorchfricError(
+            "--c-m is required: the motor constant, torque (N·m) or force (N) per unit of the "
+            "input u (e.g. the torque constant in N·m/A times the gear ratio); torchfric does "
+            "not estimate it by default, because from u and q alone it cannot be told from the "
+            "inertia and friction: e.g. torchfric init data.csv --c-m 0.5"
+        )
+    try:
+        c_m = float(value)
+    except ValueError:
+        c_m = math.nan
+    if not (math.isfinite(c_m) and c_m > 0):
+        raise TorchfricError(
+            f"--c-m {value}: expected a positive number, the motor constant (torque or force "
+            "per unit of u), e.g. --c-m 16"
+        )
+    return c_m
+
+
 def slow_cutoff(dt: float) -> float | None:
     """A velocity cut-off when the default one is above 0.4 × Nyquist, else None."""
     nyquist = 0.5 / dt
     if DEFAULT_CUTOFF_HZ["highpass"] <= 0.4 * nyquist:
         return None
     return float(f"{0.4 * nyquist:.3g}")
+
+
+def noisy_cutoff(
+    q: np.ndarray, dt: float, cutoff: float, wrap: float | None
+) -> tuple[float, float] | None:
+    """``(noise share, quieter cut-off)`` when the high-pass velocity of the position `q` (in
+    the file's units, unwrapped at `wrap`) at `cutoff` carries noise above
+    `torchfric.data.velocity.NOISY_VELOCITY` of its own 95th-percentile speed
+    (`quieter_cutoff_hz`: both are in the file's units, so their ratio is the SI one)."""
+    qa = np.unwrap(q, period=wrap) if wrap else np.asarray(q, dtype=np.float64)
+    speed = np.abs(reconstruct_velocity(qa, dt, "highpass", cutoff).numpy())
+    return quieter_cutoff_hz(qa, dt, "highpass", cutoff, float(np.quantile(speed, 0.95)))
 
 
 def rpm(speed: float) -> float:

@@ -64,6 +64,8 @@ from .columns import (
     PositionGuess,
     held_out_siblings,
     map_columns,
+    noisy_cutoff,
+    parse_c_m,
     parse_columns,
     parse_counts,
     position_unit_guess,
@@ -142,6 +144,8 @@ class _Plan:
         self.time_unit = "s"
         self.counts: dict[str, float | None] = {}
         self.position = PositionGuess("rad", "")
+        self.cutoff: float | None = None
+        self.noisy: tuple[float, float] | None = None  # (noise share, quieter cut-off)
 
     def _validation(self) -> list[str]:
         val = [_rel(p, self.folder) for p in self.validation]
@@ -185,11 +189,12 @@ class _Plan:
         why = f"The velocity filter's cut-off [Hz], below Nyquist ({0.5 / self.exp.dt:g} Hz)."
         if self.cutoff is not None:
             why += " Set to 0.4 × Nyquist: the default 200 Hz is too fast for this sampling."
+        if self.noisy:
+            noisy = _NOISY.format(self.cutoff or DEFAULT_CUTOFF_HZ["highpass"], *self.noisy)
+            why += f" {noisy[0].upper()}{noisy[1:]}."
+        cutoff = self.noisy[1] if self.noisy else self.cutoff
         lines += _block(
-            "velocity_cutoff_hz",
-            self.cutoff or DEFAULT_CUTOFF_HZ["highpass"],
-            why,
-            active=bool(self.cutoff),
+            "velocity_cutoff_hz", cutoff or DEFAULT_CUTOFF_HZ["highpass"], why, active=bool(cutoff)
         )
         n = sum(e.n for e in self.segments) if len(self.segments) > 1 else self.exp.n
         return lines + _block("stop", n, _HELP["stop"], active=False)
@@ -227,6 +232,11 @@ class _Plan:
         return "\n".join(head) + "\n"
 
 
+_NOISY = (
+    "the velocity reconstructed from q's steps at {0:g} Hz carries noise of {1:.1%} of its "
+    "95th-percentile speed (a coarse encoder), which biases the filter: velocity_cutoff_hz = "
+    "{2:g} Hz, where it carries 1 %"
+)
 _TERMS_HELP = (
     "White-box terms, each off until you remove the # before its line; the number is the "
     'initial guess (init = "prefit" fits it from the data).'
@@ -292,26 +302,6 @@ _HELP = {
 
 
 # ------------------------------------------------------------------------------------ writing
-def _c_m(value: float | str | None) -> float:
-    if value is None:
-        raise TorchfricError(
-            "--c-m is required: the motor constant, torque (N·m) or force (N) per unit of the "
-            "input u (e.g. the torque constant in N·m/A times the gear ratio); torchfric does "
-            "not estimate it by default, because from u and q alone it cannot be told from the "
-            "inertia and friction: e.g. torchfric init data.csv --c-m 0.5"
-        )
-    try:
-        c_m = float(value)
-    except ValueError:
-        c_m = math.nan
-    if not (math.isfinite(c_m) and c_m > 0):
-        raise TorchfricError(
-            f"--c-m {value}: expected a positive number, the motor constant (torque or force "
-            "per unit of u), e.g. --c-m 16"
-        )
-    return c_m
-
-
 def _out_path(data: pathlib.Path, out: str | os.PathLike[str] | None, force: bool) -> pathlib.Path:
     target = pathlib.Path(f"{data.stem}.toml" if out is None else out).absolute()
     if target.suffix.lower() in FILE_TYPES or target.resolve() == data.resolve():
@@ -367,6 +357,11 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
     steps = np.concatenate([np.diff(e.t.numpy()) for e in exps])
     plan.jitter = float(np.max(np.abs(steps - np.median(steps))) / np.median(steps))
     plan.cutoff = slow_cutoff(exp.dt)
+    if "qdot" not in plan.mapping:  # a coarse encoder's steps: a quieter velocity
+        start = plan.cutoff or DEFAULT_CUTOFF_HZ["highpass"]
+        plan.noisy = noisy_cutoff(exp.q.numpy(), exp.dt, start, plan.position.wrap_period)
+        if plan.noisy:
+            plan.notes.append(_NOISY.format(start, *plan.noisy))
 
 
 def _propose_validation(plan: _Plan, split: float | str | None) -> None:
@@ -447,7 +442,7 @@ def write_starter(
         counts_per_rev, counts_per_m: q is in encoder counts, so many per revolution (rotary)
             or per metre (linear).
     """
-    c = _c_m(c_m)
+    c = parse_c_m(c_m)
     path = pathlib.Path(data).absolute()
     if not path.is_file():
         raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")

@@ -182,35 +182,24 @@ def result_warnings(
     return out
 
 
-NOISY_VELOCITY = 0.02  # the velocity noise, as a share of the data's v95, worth a hint
-
-
 def _noisy_velocity(cfg: Config, train: list[Experiment], v95: float) -> str:
-    """For the not-converged warning: where the velocity the filter measures carries white
-    noise above `NOISY_VELOCITY` of the records' v95 (`velocity_noise`: a coarse encoder), the
-    cut-off at which it would carry at most 1 %. A heavy axis with a 4096-count encoder (3.1 %
-    at 200 Hz) did not converge in 100 passes and converged in 3 at 100, 50 or 20 Hz
-    (docs/results.md); the rig is at 0.7 %."""
-    from ...data.velocity import DEFAULT_CUTOFF_HZ, velocity_noise
+    """For the not-converged warning: where the velocity the filter measures is noisy
+    (`torchfric.data.velocity.quieter_cutoff_hz`: a coarse encoder), the cut-off to try."""
+    from ...data.velocity import DEFAULT_CUTOFF_HZ, quieter_cutoff_hz
 
     method = cfg.data.velocity
-    if method not in DEFAULT_CUTOFF_HZ or not v95 > 0 or not train:
+    if method not in DEFAULT_CUTOFF_HZ or not train:
         return ""
     cutoff = cfg.data.velocity_cutoff_hz or DEFAULT_CUTOFF_HZ[method]
     longest = max(train, key=lambda e: e.n)
-    share = velocity_noise(longest.q, longest.dt, method, cutoff) / v95
-    if not share > NOISY_VELOCITY:
+    found = quieter_cutoff_hz(longest.q, longest.dt, method, cutoff, v95)
+    if found is None:
         return ""
-    quieter = cutoff
-    while (
-        quieter > cutoff / 25
-        and velocity_noise(longest.q, longest.dt, method, quieter) > 0.01 * v95
-    ):
-        quieter *= 10**-0.1
+    share, quieter = found
     return (
         f"; the velocity the filter measures carries noise of {share:.1%} of the data's v95 "
         f'(data.velocity = "{method}" at {cutoff:g} Hz, from the position\'s steps), which '
-        f"can bias it away: try data.velocity_cutoff_hz = {float(f'{quieter:.2g}'):g}"
+        f"can bias it away: try data.velocity_cutoff_hz = {quieter:g}"
     )
 
 
