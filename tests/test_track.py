@@ -377,3 +377,25 @@ def test_the_sigma_shown_are_the_filters_times_the_runs_own_ratio(tmp_path) -> N
     assert list(
         json.loads((again / "events.json").read_text())["band_scale"].values()
     ) == pytest.approx(list(shown), rel=1e-9)
+    # the committed checkpoint's run stopped at its pass limit: every session says so
+    assert [w.split(" (")[0] for w in events["warnings"]] == [
+        "the run behind this checkpoint did not converge"
+    ]
+
+
+def test_a_checkpoint_without_the_runs_sigma_or_convergence_is_named() -> None:
+    """`start_notes`: a checkpoint holding only its filter's P_θθ (written before the run's
+    reported σ were kept beside it, as the committed reference checkpoints are) and one whose
+    run did not converge each get a warning line; a converged run's with both matrices none."""
+    from torchfric.app.commands.track import start_notes
+
+    raw = read_checkpoint(CHECKPOINT)
+    assert "filter_P_theta" not in raw["estimator"]["state"]
+    notes = start_notes(raw)
+    assert len(notes) == 2 and "only its filter's covariance" in notes[0]
+    assert "did not converge" in notes[1]
+    own = raw["estimator"]["state"]["P_theta"]
+    state = {**raw["estimator"]["state"], "filter_P_theta": own}
+    fresh = {**raw, "estimator": {**raw["estimator"], "state": state},
+             "metrics": {**raw["metrics"], "converged": True}}  # fmt: skip
+    assert start_notes(fresh) == []

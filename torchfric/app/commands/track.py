@@ -8,8 +8,8 @@ Into its own new directory it writes, as it goes:
 - ``track.csv``: ``t`` and every parameter's value and σ (physical units), a row every
   ``--every`` samples; the σ are the filter's times the run's own ratio of reported to filter σ
   (`band_scale`);
-- ``events.json``: ``{"changes": [t, …], "detector": {…}, "band_scale": {name: factor}}``,
-  rewritten at each change;
+- ``events.json``: ``{"changes": [t, …], "detector": {…}, "band_scale": {name: factor},
+  "warnings": […]}`` (`start_notes`), rewritten at each change;
 - at the end: ``final.pt`` (an ordinary checkpoint of the last estimate: evaluate, simulate,
   export, train's ``model.init`` take it), ``track.png`` (the parameter tracks with ±2σ and the
   change times) and TensorBoard logs (the same tracks, per sample index).
@@ -100,6 +100,7 @@ class _Session:
         self.settings = cfg.track  # a TrackSettings, checked (`sections.TrackConfig`)
         tuning = _tuning(raw, cfg, exp)
         theta, P_theta, self.scale = _start(raw, model, self.settings)
+        self.notes = start_notes(raw)
         self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
                                every=args.every, compile=tuning.compile)  # fmt: skip
         self.measure = tuning.measure
@@ -213,6 +214,8 @@ class _Session:
             factors = ", ".join(f"{n} ×{f:.3g}" for n, f in wide.items())
             print(f"σ shown     the filter's × the run's reported/filter σ: {factors}")
         print("changes     " + (", ".join(f"{c:.3f} s" for c in self.tracker.changes) or "none"))
+        for note in self.notes:
+            print(f"warning     {note}")
         for label, name in (("tracks", "track.csv"), ("events", "events.json"),
                             ("checkpoint", "final.pt"), ("figure", "track.png")):  # fmt: skip
             print(f"{label:<11} {self.run / name}")
@@ -231,7 +234,8 @@ class _Session:
                 "holdoff_s": self.settings.holdoff,
             }
         scale = dict(zip(self.names, self.scale.tolist(), strict=True))
-        body = {"changes": list(self.tracker.changes), "detector": detector, "band_scale": scale}
+        body = {"changes": list(self.tracker.changes), "detector": detector, "band_scale": scale,
+                "warnings": self.notes}  # fmt: skip
         atomic_write_text(self.run / "events.json", json.dumps(json_safe(body)[0], indent=1) + "\n")
 
     def _say(self, text: str) -> None:
@@ -274,6 +278,29 @@ def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any, Any]:
     if usable(reported):
         return theta, torch.as_tensor(reported, dtype=torch.float64).clone(), ones
     return theta, settings.reopen * torch.eye(k, dtype=torch.float64), ones
+
+
+def start_notes(raw: dict) -> list[str]:
+    """What makes the σ the tracker shows, or its start, less trustworthy than a run of this
+    version gives: a checkpoint without the run's two covariances (the σ shown are then the
+    filter's own: on the machines of docs/results.md they held M and b in 0–47 % of the rows
+    against 89–100 % with the run's scale), and a run that did not converge (its filter's
+    wide directions take a change up, so the detector sees less of it)."""
+    state = (raw.get("estimator") or {}).get("state") or {}
+    notes = []
+    if state.get("P_theta") is not None and state.get("filter_P_theta") is None:
+        notes.append(
+            "this checkpoint holds only its filter's covariance (written before the run's "
+            "reported σ were kept beside it): the σ shown are the filter's own, which on a "
+            "record with coloured noise are several times too narrow; train again with this "
+            "version for σ that hold the truth"
+        )
+    if (raw.get("metrics") or {}).get("converged") is False:
+        notes.append(
+            "the run behind this checkpoint did not converge (its summary said what to change): "
+            "directions its filter left wide can take a change up unseen"
+        )
+    return notes
 
 
 def band_scale(reported: Any, own: Any) -> Any:
