@@ -290,3 +290,23 @@ def test_the_noise_the_cutoff_search_reads_is_the_records_own() -> None:
     low, lower = (quiet_cutoff_hz([(q + s * noise, 1e-3)], 50.0) for s in (1e-3, 4e-3))
     assert low < 50.0 and lower < low
     assert lower / low == pytest.approx(4.0 ** (-2.0 / 5.0), rel=0.3)
+
+
+def test_a_constant_force_is_measured_in_any_unit_and_absent_where_there_is_none() -> None:
+    """`constant_force`: a vertical axis's gravity (12 kg: 117.7 N) is found to 1 % and takes
+    over 90 % of the inverse dynamics' residual, the same with q in m or in mm (the unit only
+    scales M and b); a horizontal Stribeck axis leaves a constant that takes under 1 %."""
+    from torchfric.data.axis import STRIBECK_AXIS, AxisParameters, axis_record
+    from torchfric.estimators.prefit import OFFSET_SHARE, constant_force
+
+    z = AxisParameters(inertia=12.0, c_m=60.0, viscous=150.0, coulomb=15.0, static=22.0,
+                       stribeck_velocity=0.002, smoothing=0.05, offset=117.7, quantum=1e-6,
+                       max_speed=0.4, max_input=5.0)  # fmt: skip
+    rec = axis_record(z, seed=0, duration=8.0)
+    t, u, q = (torch.as_tensor(rec[k]) for k in ("t", "u", "q"))
+    found = [constant_force([make_experiment(t, u, q * k, name="z")], 60.0) for k in (1.0, 1e3)]
+    assert found[0][0] == pytest.approx(117.7, rel=0.01) and found[0][1] > 0.9
+    assert found[1] == pytest.approx(found[0], rel=1e-6)
+    rec = axis_record(STRIBECK_AXIS, seed=0, duration=8.0)
+    flat = make_experiment(*(torch.as_tensor(rec[k]) for k in ("t", "u", "q")), name="s")
+    assert constant_force([flat], STRIBECK_AXIS.c_m)[1] < 0.01 < OFFSET_SHARE

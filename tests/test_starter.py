@@ -481,3 +481,26 @@ def test_a_coarse_encoder_gets_a_quieter_velocity_in_any_unit(user, capsys) -> N
         assert re.search(r"at 200 Hz carries noise of 2\.\d% of its 95th-percentile speed", out)
         cutoffs.append(Config.load(user / f"{name}.toml").data.velocity_cutoff_hz)
     assert cutoffs[0] == cutoffs[1] and 30.0 < cutoffs[0] < 120.0
+
+
+def test_a_vertical_axis_gets_its_offset_and_a_config_without_it_a_warning(user, capsys) -> None:  # type: ignore[no-untyped-def]
+    """Gravity on a vertical axis (12 kg, 117.7 N) is a constant force the odd friction curve
+    cannot hold: without the offset term such a run reached an inertia of 7e42. init turns
+    ``model.offset`` on and says why; ``check`` of a config without it warns, naming the key;
+    the records of this file (no constant force) keep it off."""
+    from torchfric.data.axis import AxisParameters, axis_record, write_csv
+
+    z = AxisParameters(inertia=12.0, c_m=60.0, viscous=150.0, coulomb=15.0, static=22.0,
+                       stribeck_velocity=0.002, smoothing=0.05, offset=117.7, quantum=1e-6,
+                       max_speed=0.4, max_input=5.0)  # fmt: skip
+    write_csv(user / "z.csv", axis_record(z, seed=0, duration=8.0), position_unit="mm",
+              unit_header=True)  # fmt: skip
+    assert main(["init", "z.csv", "--c-m", "60"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"constant force or torque of 11\d\.\d .*: model\.offset is on", out)
+    assert Config.load(user / "z.toml").model.offset == 0.0
+    text = (user / "z.toml").read_text().replace("\noffset = 0.0", "\n# offset = 0.0")
+    (user / "without.toml").write_text(text)
+    assert main(["check", "without.toml"]) == 0
+    out = capsys.readouterr().out
+    assert "leave a constant 11" in out and "set model.offset = 0.0" in out

@@ -44,6 +44,7 @@ __all__ = [
     "MS_STEP",
     "map_columns",
     "noisy_cutoff",
+    "constant_found",
     "parse_c_m",
     "parse_columns",
     "PositionGuess",
@@ -52,7 +53,10 @@ __all__ = [
     "time_unit_of",
     "rpm",
     "slow_cutoff",
+    "split_record",
 ]
+
+_MIN_PART = 100  # samples in each part of a --split
 
 ALIASES: dict[str, tuple[str, ...]] = {
     "t": ("t", "time", "times", "timestamp", "sec", "secs", "seconds",
@@ -304,6 +308,49 @@ def noisy_cutoff(
     qa = np.unwrap(q, period=wrap) if wrap else np.asarray(q, dtype=np.float64)
     speed = np.abs(reconstruct_velocity(qa, dt, "highpass", cutoff).numpy())
     return quieter_cutoff_hz(qa, dt, "highpass", cutoff, float(np.quantile(speed, 0.95)))
+
+
+def constant_found(
+    segments: Sequence[Experiment], c_m: float, wrap: float | None
+) -> tuple[float, float] | None:
+    """``(force, share)`` when the records' inverse dynamics leave a constant force that takes
+    at least `OFFSET_SHARE` of their residual (`constant_force`; q unwrapped at `wrap`, in the
+    file's unit, which only scales M and b), else None."""
+    from ...data import make_experiment
+    from ...estimators.prefit import OFFSET_SHARE, constant_force
+
+    parts = []
+    for e in segments:
+        q = np.unwrap(e.q.numpy(), period=wrap) if wrap else e.q.numpy()
+        parts.append(make_experiment(e.t, e.u, q, name=e.name))
+    try:
+        force, share = constant_force(parts, c_m)
+    except TorchfricError:  # never moves: the check that follows says so
+        return None
+    return (force, share) if share >= OFFSET_SHARE else None
+
+
+def split_record(
+    exp: Experiment, fraction: float, folder: pathlib.Path, stem: str
+) -> dict[pathlib.Path, Experiment]:
+    """{new file: its part} for init's ``--split``: the first `fraction` and the rest."""
+    k = round(fraction * exp.n)
+    if min(k, exp.n - k) < _MIN_PART:
+        raise TorchfricError(
+            f"--split {fraction:g} leaves {min(k, exp.n - k)} samples in one part of "
+            f"{exp.n}; each part needs at least {_MIN_PART}: choose a fraction nearer 0.5"
+        )
+    parts = {
+        folder / f"{stem}_identification.csv": exp.slice(0, k),
+        folder / f"{stem}_validation.csv": exp.slice(k),
+    }
+    for p in parts:
+        if p.exists() or p.is_symlink():
+            raise TorchfricError(
+                f"--split would write {p}, which exists; init never replaces a data file: move "
+                "it away, or write the config into another folder with --out"
+            )
+    return parts
 
 
 def rpm(speed: float) -> float:

@@ -62,6 +62,7 @@ from ..config import MAX_NAME, Config, EstimatorConfig, ModelConfig, toml_value
 from .check import check_run
 from .columns import (
     PositionGuess,
+    constant_found,
     held_out_siblings,
     map_columns,
     noisy_cutoff,
@@ -71,35 +72,11 @@ from .columns import (
     position_unit_guess,
     refuse_milliseconds,
     slow_cutoff,
+    split_record,
     time_unit_of,
 )
 
 __all__ = ["cmd_init", "write_starter"]
-
-_MIN_PART = 100  # samples in each part of a --split
-
-
-def _split(
-    exp: Experiment, fraction: float, folder: pathlib.Path, stem: str
-) -> dict[pathlib.Path, Experiment]:
-    """{new file: its part} for ``--split``: the first `fraction` and the rest."""
-    k = round(fraction * exp.n)
-    if min(k, exp.n - k) < _MIN_PART:
-        raise TorchfricError(
-            f"--split {fraction:g} leaves {min(k, exp.n - k)} samples in one part of "
-            f"{exp.n}; each part needs at least {_MIN_PART}: choose a fraction nearer 0.5"
-        )
-    parts = {
-        folder / f"{stem}_identification.csv": exp.slice(0, k),
-        folder / f"{stem}_validation.csv": exp.slice(k),
-    }
-    for p in parts:
-        if p.exists() or p.is_symlink():
-            raise TorchfricError(
-                f"--split would write {p}, which exists; init never replaces a data file: move "
-                "it away, or write the config into another folder with --out"
-            )
-    return parts
 
 
 # ------------------------------------------------------------------------------------ the text
@@ -146,6 +123,7 @@ class _Plan:
         self.position = PositionGuess("rad", "")
         self.cutoff: float | None = None
         self.noisy: tuple[float, float] | None = None  # (noise share, quieter cut-off)
+        self.offset: tuple[float, float] | None = None  # (constant force, its residual share)
 
     def _validation(self) -> list[str]:
         val = [_rel(p, self.folder) for p in self.validation]
@@ -225,7 +203,7 @@ class _Plan:
             head += _block(key, getattr(model, key), _HELP.get(key, ""))
         head += _comment(_TERMS_HELP)
         for key, example, why in _TERMS:
-            head += _block(key, example, why, active=False)
+            head += _block(key, example, why, active=key == "offset" and bool(self.offset))
         head += ["", "[estimator]"]
         for key in ("method", "passes", "tolerance", "ensemble"):
             head += _block(key, getattr(est, key), _HELP.get(key, ""))
@@ -236,6 +214,11 @@ _NOISY = (
     "the velocity reconstructed from q's steps at {0:g} Hz carries noise of {1:.1%} of its "
     "95th-percentile speed (a coarse encoder), which biases the filter: velocity_cutoff_hz = "
     "{2:g} Hz, where it carries 1 %"
+)
+_OFFSET = (
+    "the record's inverse dynamics leave a constant force or torque of {0:.4g} (c_m·u fitted "
+    "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
+    "gravity on a vertical axis does: model.offset is on"
 )
 _TERMS_HELP = (
     "White-box terms, each off until you remove the # before its line; the number is the "
@@ -362,6 +345,9 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
         plan.noisy = noisy_cutoff(exp.q.numpy(), exp.dt, start, plan.position.wrap_period)
         if plan.noisy:
             plan.notes.append(_NOISY.format(start, *plan.noisy))
+    plan.offset = constant_found(plan.segments, plan.c_m, plan.position.wrap_period)
+    if plan.offset:
+        plan.notes.append(_OFFSET.format(*plan.offset))
 
 
 def _propose_validation(plan: _Plan, split: float | str | None) -> None:
@@ -385,7 +371,7 @@ def _propose_validation(plan: _Plan, split: float | str | None) -> None:
             f"{plan.time_unit} or a wrapping q); init splits only plain records: give a second "
             "record as validation instead (see the comment in the config without --split)"
         )
-    plan.splits = _split(plan.exp, fraction, plan.folder, plan.data.stem)
+    plan.splits = split_record(plan.exp, fraction, plan.folder, plan.data.stem)
     plan.train, plan.validation = list(plan.splits)[:1], list(plan.splits)[1:]
     k = plan.splits[plan.train[0]].n
     plan.split = (

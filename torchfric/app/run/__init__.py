@@ -36,7 +36,9 @@ _LAZY: dict[str, str] = {
     **dict.fromkeys(
         ["keep_best", "parameter_lines", "parameter_table", "summary_lines"], "outcome"
     ),
-    **dict.fromkeys(["evaluate_model", "result_warnings", "scoring_engine"], "assessment"),
+    **dict.fromkeys(
+        ["evaluate_model", "missing_offset", "result_warnings", "scoring_engine"], "assessment"
+    ),
     "best_member_loglik": "monitors",
 }  # fmt: skip
 

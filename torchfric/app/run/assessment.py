@@ -7,13 +7,14 @@ from typing import Any
 import torch
 
 from ...data import Experiment
+from ...errors import TorchfricError
 from ...estimators.metrics import SimulationScore, score_simulation
 from ...estimators.settings import data_speeds, speed_quantiles
 from ...models.arm import ArmModel
 from ..artifacts import read_checkpoint
 from ..config import Config
 
-__all__ = ["evaluate_model", "result_warnings", "provenance", "scoring_engine"]
+__all__ = ["evaluate_model", "missing_offset", "result_warnings", "provenance", "scoring_engine"]
 
 
 def scoring_engine(cfg: Config) -> str:
@@ -141,6 +142,8 @@ def result_warnings(
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
+    offset = missing_offset(cfg, final, train or [])
+    out += [offset] if offset else []
     v95 = _v95(train or [])
     out += _active_friction(final, v95)
     out += _uninformed(cfg, final, covariance, start, metrics)
@@ -180,6 +183,31 @@ def result_warnings(
     if far:
         out.append(far)
     return out
+
+
+def missing_offset(cfg: Config, model: ArmModel, train: list[Experiment]) -> str:
+    """A warning when the model has no offset term and the records' inverse dynamics leave a
+    constant force that takes at least `OFFSET_SHARE` of their residual (`constant_force`: a
+    vertical axis's gravity, EMPS's and HSM150's offsets), else "". A 12-kg vertical axis
+    without it ran to an inertia of 7e42 and a validation FIT of −50 %."""
+    from ...data.units import force_unit
+    from ...estimators.prefit import OFFSET_SHARE, constant_force
+
+    if cfg.model.offset is not None or not train:
+        return ""
+    try:
+        force, share = constant_force(train, float(model.c_m.detach()))
+    except TorchfricError:  # records that never move: the pre-fit says so
+        return ""
+    if share < OFFSET_SHARE:
+        return ""
+    return (
+        f"the records' inverse dynamics leave a constant {force:.4g} "
+        f"{force_unit(cfg.data.axis_unit)} (c_m·u fitted by inertia, viscous and Coulomb "
+        f"terms: a constant takes {share:.0%} of the residual); the model has no offset term, "
+        "so the friction curve and the inertia take it up: set model.offset = 0.0 (gravity "
+        "on a vertical or tilted axis, a cable, an amplifier offset)"
+    )
 
 
 def _noisy_velocity(cfg: Config, train: list[Experiment], v95: float) -> str:
