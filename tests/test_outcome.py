@@ -250,6 +250,10 @@ def test_summary_lines_say_why_the_run_stopped() -> None:
     text = "\n".join(summary_lines({**base, "stopped": "budget"}, files))
     assert "NOT converged" in text and "all 4 passes" in text and "highest likelihood" in text
     assert "inertia  0.03\n" in text + "\n"  # no σ: no "±"
+    # no σ at all: an EKF run whose data determined nothing says so, output error says its own
+    assert "no σ: the data determined none of them" in text
+    oe_text = "\n".join(summary_lines({**base, "estimator": "output_error"}, files))
+    assert "no σ: output error keeps no parameter covariance" in oe_text
     oe = {**base, "epochs": 5, "stopped": "early"}
     oe.pop("passes")
     assert "kept epoch 4 of 5" in "\n".join(summary_lines(oe, files))

@@ -264,8 +264,10 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     table = metrics["parameters"]
     if any(v["std"] is not None for v in table.values()):
         lines.append("parameters (value ± σ):")
-    else:
+    elif metrics.get("estimator") == "output_error":
         lines.append("parameters (no σ: output error keeps no parameter covariance):")
+    else:  # the covariance found no direction the data determine (its warnings name them)
+        lines.append("parameters (no σ: the data determined none of them; see the warnings):")
     lines += parameter_lines(table)
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
