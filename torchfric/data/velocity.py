@@ -273,7 +273,7 @@ def quieter_cutoff_hz(
 def _white_variance(q: np.ndarray) -> float:
     """The variance σ² of white noise on the positions `q`: ``var(Δ⁴q) / 70`` (white noise's
     fourth difference has variance C(8, 4)·σ² = 70σ²; a motion's own is ``q⁽⁴⁾ dt⁴``, which
-    falls as ``(ω dt)⁴``). The second difference (``var(Δ²q) / 6``, used until 2026-11-28) took
+    falls as ``(ω dt)⁴``). The second difference (``var(Δ²q) / 6``, used until 2026-11-27) took
     the motion for noise where the sampling is slow: the unbalanced disc at 40 Hz read 5.7 % of
     its v95 as velocity noise, 0.6 % by the fourth; both read 3.1 % on a 4096-count encoder at
     1 kHz, where quantisation is the noise."""
