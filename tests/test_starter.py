@@ -349,32 +349,37 @@ def test_a_config_that_fails_its_check_is_not_written_nor_its_split_files(user, 
     assert _files(user) == before
 
 
-@pytest.mark.parametrize(
-    ("key", "value", "when", "term"),
-    [
-        ("offset", 0.0, "try it when the simulation drifts one way", "offset"),
-        ("gravity", 0.1, "g_c·sin q of an unbalanced rotating arm", "gravity"),
-        ("asymmetric", 0.0, "viscous slope b + a forwards and b − a backwards", "asymmetric viscous"),
-    ],
-)  # fmt: skip
-def test_white_box_terms_are_offered_commented_out_and_each_works(  # type: ignore[no-untyped-def]
-    user, record, capsys, key, value, when, term
-) -> None:
+_TERMS = (
+    ("offset", 0.0, "try it when the simulation drifts one way"),
+    ("gravity", 0.1, "g_c·sin q of an unbalanced rotating arm"),
+    ("asymmetric", 0.0, "viscous slope b + a forwards and b − a backwards"),
+)
+
+
+def test_white_box_terms_are_offered_commented_out_and_work(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    """Each term is written off, in [model], below the line that says when to turn it on;
+    turned on (all three in one config: one init and one check), the model builds with each and
+    the pre-fit runs."""
     _csv(user / "rec.csv", record)
     assert main(["init", "rec.csv", "--c-m", "16"]) == 0
     capsys.readouterr()
-    text = (user / "rec.toml").read_text()
+    text = on = (user / "rec.toml").read_text()
     model = text.split("\n[model]\n")[1].split("\n[estimator]\n")[0]
-    line = f"# {key} = {value}"
-    assert model.count(f"\n{line}\n") == 1  # off, in [model]
-    above = re.search(rf"((?:^# .*\n)+){re.escape(line)}$", model, re.M)[1]
-    assert when in above.replace("\n# ", " ")
-    assert getattr(Config.load(user / "rec.toml").model, key) is None  # off as written
-    (user / "on.toml").write_text(text.replace(f"\n{line}\n", f"\n{key} = {value}\n"))
-    assert getattr(Config.load(user / "on.toml").model, key) == value
-    assert main(["check", "on.toml"]) == 0  # the model builds and the pre-fit runs with it
+    written = Config.load(user / "rec.toml").model
+    for key, value, when in _TERMS:
+        line = f"# {key} = {value}"
+        assert model.count(f"\n{line}\n") == 1  # off, in [model]
+        above = re.search(rf"((?:^# .*\n)+){re.escape(line)}$", model, re.M)[1]
+        assert when in above.replace("\n# ", " ")
+        assert getattr(written, key) is None  # off as written
+        on = on.replace(f"\n{line}\n", f"\n{key} = {value}\n")
+    (user / "on.toml").write_text(on)
+    turned = Config.load(user / "on.toml").model
+    assert [getattr(turned, key) for key, _, _ in _TERMS] == [v for _, v, _ in _TERMS]
+    assert main(["check", "on.toml"]) == 0  # the model builds and the pre-fit runs with them
     out = capsys.readouterr().out
-    assert f"12 parameters, c_m 16 (known, fixed); terms: {term}" in out  # auto: LuGre checked
+    # auto: LuGre checked (11) + the three terms
+    assert "14 parameters, c_m 16 (known, fixed); terms: offset, gravity, asymmetric viscous" in out
 
 
 def test_the_friction_class_is_auto_as_written_and_lugre_works(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
