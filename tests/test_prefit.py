@@ -297,7 +297,7 @@ def test_a_constant_force_is_measured_in_any_unit_and_absent_where_there_is_none
     over 90 % of the inverse dynamics' residual, the same with q in m or in mm (the unit only
     scales M and b); a horizontal Stribeck axis leaves a constant that takes under 1 %."""
     from torchfric.data.axis import STRIBECK_AXIS, AxisParameters, axis_record
-    from torchfric.estimators.prefit import OFFSET_SHARE, constant_force
+    from torchfric.estimators.settings import OFFSET_SHARE, constant_force
 
     z = AxisParameters(inertia=12.0, c_m=60.0, viscous=150.0, coulomb=15.0, static=22.0,
                        stribeck_velocity=0.002, smoothing=0.05, offset=117.7, quantum=1e-6,

@@ -509,3 +509,42 @@ def test_a_vertical_axis_gets_its_offset_and_a_config_without_it_a_warning(user,
     assert main(["check", "without.toml"]) == 0
     out = capsys.readouterr().out
     assert "leave a constant 11" in out and "set model.offset = 0.0" in out
+
+
+def _pendulum(n: int, dt: float, zero_deg: float) -> dict[str, np.ndarray]:
+    """An unbalanced arm, M q̈ = u − b q̇ − Fc tanh(q̇/0.01) − g sin q (M 0.05, b 0.01, Fc 0.05,
+    g 0.5), swung by two sines to about ±100°; q in degrees from a zero `zero_deg` past the
+    lowest point, as an encoder mounted anywhere reads it."""
+    t = np.arange(n) * dt
+    u = 0.45 * np.sin(2 * np.pi * 0.6 * t) + 0.2 * np.sin(2 * np.pi * 1.7 * t + 1.0)
+    q = np.zeros(n)
+    x = v = 0.0
+    h = dt / 10
+    for k in range(1, n):
+        for _ in range(10):
+            a = (u[k - 1] - 0.01 * v - 0.05 * math.tanh(v / 0.01) - 0.5 * math.sin(x)) / 0.05
+            v += h * a
+            x += h * v
+        q[k] = x
+    return {"t": t, "u": u, "q": np.degrees(q) + zero_deg}
+
+
+def test_an_unbalanced_arm_gets_its_gravity_term_when_q_is_zero_at_the_bottom(user, capsys) -> None:  # type: ignore[no-untyped-def]
+    """An arm that swings back (g sin q): init turns ``model.gravity`` on, with the amplitude
+    its inverse dynamics give as the start; an encoder zeroed 90° away gets a note to re-zero q
+    and the term stays off; ``check`` of a config without it names ``model.gravity``."""
+    rec = _pendulum(6000, 2e-3, 0.0)
+    _write(user / "arm.csv", ["t", "u", "q [deg]"], [rec["t"], rec["u"], rec["q"]])
+    assert main(["init", "arm.csv", "--c-m", "1"]) == 0
+    assert "model.gravity is on" in capsys.readouterr().out
+    assert Config.load(user / "arm.toml").model.gravity == pytest.approx(0.5, rel=0.05)
+    text = re.sub(r"\ngravity = [0-9.e-]+\n", "\n", (user / "arm.toml").read_text())
+    (user / "without.toml").write_text(text)
+    assert main(["check", "without.toml"]) == 0
+    assert "the model has no gravity term: set model.gravity = 0.5" in capsys.readouterr().out
+    off = _pendulum(6000, 2e-3, 90.0)
+    _write(user / "off.csv", ["t", "u", "q [deg]"], [off["t"], off["u"], off["q"]])
+    assert main(["init", "off.csv", "--c-m", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "lowest point at q0 = 90°" in out and "re-zero q" in out
+    assert Config.load(user / "off.toml").model.gravity is None

@@ -38,8 +38,7 @@ from ..models.arm import ArmModel
 from ..models.friction import make_friction
 
 __all__ = [
-    "PrefitResult", "prefit", "default_cutoff_hz", "constant_force", "CUTOFF_HZ", "NYQUIST_FRACTION",
-    "OFFSET_SHARE", "PREFIT_ROWS",
+    "PrefitResult", "prefit", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION", "PREFIT_ROWS",
 ]  # fmt: skip
 
 CUTOFF_HZ = 50.0
@@ -159,27 +158,6 @@ def _least_squares(cols: list[Tensor], rhs: Tensor) -> tuple[Tensor, float]:
     sol = torch.linalg.lstsq(A / scale, rhs.unsqueeze(1), driver="gelsd").solution.squeeze(1)
     sol = sol / scale
     return sol, float((rhs - A @ sol).pow(2).mean().sqrt())
-
-
-OFFSET_SHARE = 0.1
-"""The share of the inverse dynamics' residual a constant must take (`constant_force`) for a
-record to be said to carry a constant force the model lacks."""
-
-
-def constant_force(experiments: Sequence[Experiment], c_m: float) -> tuple[float, float]:
-    """The constant force or torque in the records' inverse dynamics, and the share of the
-    residual it takes: least squares of ``c_m u`` on ``M q̈ + b q̇ + Fc sign(q̇)`` with and without
-    a constant, on the pre-fit's moving samples at its cut-off; the share is ``1 − RMS with /
-    RMS without``. Gravity on a vertical axis (12 kg: 117.7 N) takes 96 %, EMPS's −3.2 N 43 %,
-    HSM150's 72 %; the rig, the disc and the axes of the coverage study 0.0–0.1 %. q's unit
-    only scales M and b: the constant and its share are the same in any."""
-    exps = list(experiments)
-    cutoff = default_cutoff_hz(max(e.dt for e in exps))
-    q, v, a, u = _regression_data(exps, cutoff, 0.02)
-    cols = [a, v, torch.sign(v)]
-    _, without = _least_squares(cols, c_m * u)
-    sol, with_it = _least_squares([*cols, torch.ones_like(v)], c_m * u)
-    return float(sol[-1]), (1.0 - with_it / without) if without > 0 else 0.0
 
 
 def _starts(model: ArmModel, lin: dict[str, float], v_scale: float) -> list[ArmModel]:

@@ -36,7 +36,7 @@ from ..run import (
     estimate_run,
     initial_model,
     load_data,
-    missing_offset,
+    missing_terms,
     with_dynamic,
 )
 from ..run import sized as with_size
@@ -209,8 +209,7 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     one = with_dynamic(one, "lugre") if cfg.model.dynamic == "auto" else one
     base = config_model(one, train)
     check_resources(one, train, base)
-    offset = missing_offset(cfg, base, train)
-    found += [offset] if offset else []
+    found += missing_terms(cfg, base, train)
     t_start = time.perf_counter()
     start, init_kind = initial_model(one, train, base)
     t_start = time.perf_counter() - t_start

@@ -15,7 +15,12 @@ qdot), and whether its time and position units are what they seem.
   when a speed above `FAST_SPEED` units/s suggests otherwise. `slow_cutoff`: a velocity
   cut-off for records too slow for 200 Hz.
 - `held_out_role`, `held_out_siblings`: records beside the data named as its held-out ones;
-  `parse_counts`: ``--counts-per-rev``/``--counts-per-m``.
+  `parse_counts`: ``--counts-per-rev``/``--counts-per-m``; `parse_c_m`: ``--c-m``.
+- What the record needs beyond its units: `noisy_cutoff` (a coarse encoder's quieter velocity),
+  `terms_found` (a constant force, an unbalanced arm's gravity), `split_record` (``--split``).
+
+Why this size: everything init reads off a record before it writes a line of config, apart from
+the config's text itself (`init`).
 """
 
 from __future__ import annotations
@@ -44,7 +49,7 @@ __all__ = [
     "MS_STEP",
     "map_columns",
     "noisy_cutoff",
-    "constant_found",
+    "terms_found",
     "parse_c_m",
     "parse_columns",
     "PositionGuess",
@@ -310,24 +315,59 @@ def noisy_cutoff(
     return quieter_cutoff_hz(qa, dt, "highpass", cutoff, float(np.quantile(speed, 0.95)))
 
 
-def constant_found(
-    segments: Sequence[Experiment], c_m: float, wrap: float | None
-) -> tuple[float, float] | None:
-    """``(force, share)`` when the records' inverse dynamics leave a constant force that takes
-    at least `OFFSET_SHARE` of their residual (`constant_force`; q unwrapped at `wrap`, in the
-    file's unit, which only scales M and b), else None."""
+def terms_found(
+    segments: Sequence[Experiment], c_m: float, position: PositionGuess
+) -> dict[str, tuple[float | None, str]]:
+    """``{term: (initial value or None, note)}`` for the white-box terms the records' inverse
+    dynamics ask for (`torchfric.estimators.settings`, each taking at least `OFFSET_SHARE`
+    of the residual): ``offset`` for a constant force, ``gravity`` for ``g sin(q − q0)`` on a
+    rotary axis (its value g when the lowest point q0 is within `GRAVITY_PHASE` of 0, else None
+    and a note to re-zero q). q is unwrapped and scaled to SI from the file's unit."""
     from ...data import make_experiment
-    from ...estimators.prefit import OFFSET_SHARE, constant_force
+    from ...data.units import position_factor, si_unit
+    from ...estimators.settings import (
+        GRAVITY_PHASE,
+        OFFSET_SHARE,
+        constant_force,
+        gravity_torque,
+    )  # fmt: skip
 
+    wrap = position.wrap_period
+    scale = position_factor(position.unit, position.counts_per_rev, position.counts_per_m)
     parts = []
     for e in segments:
         q = np.unwrap(e.q.numpy(), period=wrap) if wrap else e.q.numpy()
-        parts.append(make_experiment(e.t, e.u, q, name=e.name))
+        parts.append(make_experiment(e.t, e.u, q * scale, name=e.name))
+    found: dict[str, tuple[float | None, str]] = {}
     try:
         force, share = constant_force(parts, c_m)
     except TorchfricError:  # never moves: the check that follows says so
-        return None
-    return (force, share) if share >= OFFSET_SHARE else None
+        return found
+    if share >= OFFSET_SHARE:
+        found["offset"] = (0.0, _OFFSET.format(force, share))
+    if si_unit(position.unit, position.counts_per_m) == "rad":
+        g, q0, share = gravity_torque(parts, c_m)
+        if share >= OFFSET_SHARE:
+            on = abs(q0) <= GRAVITY_PHASE
+            text = _GRAVITY.format(g, math.degrees(q0), share, _GRAVITY_ON if on else _REZERO)
+            found["gravity"] = (float(f"{g:.3g}") if on else None, text)
+    return found
+
+
+_OFFSET = (
+    "the record's inverse dynamics leave a constant force or torque of {0:.4g} (c_m·u fitted "
+    "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
+    "gravity on a vertical axis does: model.offset is on"
+)
+_GRAVITY = (
+    "the record's inverse dynamics carry a torque {0:.3g}·sin(q − q0) with its lowest point at "
+    "q0 = {1:.0f}° (it takes {2:.0%} of the residual), as an unbalanced arm does: {3}"
+)
+_GRAVITY_ON = "model.gravity is on (g_c sin q, q = 0 hanging straight down)"
+_REZERO = (
+    "model.gravity (g_c sin q) takes q = 0 hanging straight down, so it stays off: re-zero q "
+    "at the lowest point, then turn it on"
+)
 
 
 def split_record(

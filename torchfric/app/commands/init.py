@@ -62,7 +62,6 @@ from ..config import MAX_NAME, Config, EstimatorConfig, ModelConfig, toml_value
 from .check import check_run
 from .columns import (
     PositionGuess,
-    constant_found,
     held_out_siblings,
     map_columns,
     noisy_cutoff,
@@ -73,6 +72,7 @@ from .columns import (
     refuse_milliseconds,
     slow_cutoff,
     split_record,
+    terms_found,
     time_unit_of,
 )
 
@@ -123,7 +123,7 @@ class _Plan:
         self.position = PositionGuess("rad", "")
         self.cutoff: float | None = None
         self.noisy: tuple[float, float] | None = None  # (noise share, quieter cut-off)
-        self.offset: tuple[float, float] | None = None  # (constant force, its residual share)
+        self.terms: dict[str, tuple[float | None, str]] = {}  # `terms_found`
 
     def _validation(self) -> list[str]:
         val = [_rel(p, self.folder) for p in self.validation]
@@ -203,7 +203,8 @@ class _Plan:
             head += _block(key, getattr(model, key), _HELP.get(key, ""))
         head += _comment(_TERMS_HELP)
         for key, example, why in _TERMS:
-            head += _block(key, example, why, active=key == "offset" and bool(self.offset))
+            found = self.terms.get(key, (None, ""))[0]
+            head += _block(key, example if found is None else found, why, active=found is not None)
         head += ["", "[estimator]"]
         for key in ("method", "passes", "tolerance", "ensemble"):
             head += _block(key, getattr(est, key), _HELP.get(key, ""))
@@ -214,11 +215,6 @@ _NOISY = (
     "the velocity reconstructed from q's steps at {0:g} Hz carries noise of {1:.1%} of its "
     "95th-percentile speed (a coarse encoder), which biases the filter: velocity_cutoff_hz = "
     "{2:g} Hz, where it carries 1 %"
-)
-_OFFSET = (
-    "the record's inverse dynamics leave a constant force or torque of {0:.4g} (c_m·u fitted "
-    "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
-    "gravity on a vertical axis does: model.offset is on"
 )
 _TERMS_HELP = (
     "White-box terms, each off until you remove the # before its line; the number is the "
@@ -345,9 +341,8 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
         plan.noisy = noisy_cutoff(exp.q.numpy(), exp.dt, start, plan.position.wrap_period)
         if plan.noisy:
             plan.notes.append(_NOISY.format(start, *plan.noisy))
-    plan.offset = constant_found(plan.segments, plan.c_m, plan.position.wrap_period)
-    if plan.offset:
-        plan.notes.append(_OFFSET.format(*plan.offset))
+    plan.terms = terms_found(plan.segments, plan.c_m, plan.position)
+    plan.notes += [note for _, note in plan.terms.values()]
 
 
 def _propose_validation(plan: _Plan, split: float | str | None) -> None:

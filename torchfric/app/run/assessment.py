@@ -14,7 +14,7 @@ from ...models.arm import ArmModel
 from ..artifacts import read_checkpoint
 from ..config import Config
 
-__all__ = ["evaluate_model", "missing_offset", "result_warnings", "provenance", "scoring_engine"]
+__all__ = ["evaluate_model", "missing_terms", "result_warnings", "provenance", "scoring_engine"]
 
 
 def scoring_engine(cfg: Config) -> str:
@@ -142,8 +142,7 @@ def result_warnings(
             "(estimator.r, estimator.p0_theta)"
         )
     out += _bound_warnings(cfg, final, inertia)
-    offset = missing_offset(cfg, final, train or [])
-    out += [offset] if offset else []
+    out += missing_terms(cfg, final, train or [])
     v95 = _v95(train or [])
     out += _active_friction(final, v95)
     out += _uninformed(cfg, final, covariance, start, metrics)
@@ -185,29 +184,55 @@ def result_warnings(
     return out
 
 
-def missing_offset(cfg: Config, model: ArmModel, train: list[Experiment]) -> str:
-    """A warning when the model has no offset term and the records' inverse dynamics leave a
-    constant force that takes at least `OFFSET_SHARE` of their residual (`constant_force`: a
-    vertical axis's gravity, EMPS's and HSM150's offsets), else "". A 12-kg vertical axis
-    without it ran to an inertia of 7e42 and a validation FIT of −50 %."""
-    from ...data.units import force_unit
-    from ...estimators.prefit import OFFSET_SHARE, constant_force
+def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list[str]:
+    """Warnings for white-box terms the records' inverse dynamics ask for and the model lacks
+    (`torchfric.estimators.settings`, each taking at least `OFFSET_SHARE` of the residual):
+    a constant force without ``model.offset`` (a vertical axis's gravity, EMPS's and HSM150's
+    offsets; a 12-kg vertical axis without it ran to an inertia of 7e42 and a validation FIT
+    of −50 %), an unbalanced arm's ``g sin(q − q0)`` without ``model.gravity``."""
+    import math
 
-    if cfg.model.offset is not None or not train:
-        return ""
+    from ...data.units import force_unit
+    from ...estimators.settings import (
+        GRAVITY_PHASE,
+        OFFSET_SHARE,
+        constant_force,
+        gravity_torque,
+    )  # fmt: skip
+
+    m, out = cfg.model, []
+    if not train or (
+        m.offset is not None and (m.gravity is not None or cfg.data.axis_unit != "rad")
+    ):
+        return out
+    c_m = float(model.c_m.detach())
     try:
-        force, share = constant_force(train, float(model.c_m.detach()))
+        force, share = constant_force(train, c_m)
     except TorchfricError:  # records that never move: the pre-fit says so
-        return ""
-    if share < OFFSET_SHARE:
-        return ""
-    return (
-        f"the records' inverse dynamics leave a constant {force:.4g} "
-        f"{force_unit(cfg.data.axis_unit)} (c_m·u fitted by inertia, viscous and Coulomb "
-        f"terms: a constant takes {share:.0%} of the residual); the model has no offset term, "
-        "so the friction curve and the inertia take it up: set model.offset = 0.0 (gravity "
-        "on a vertical or tilted axis, a cable, an amplifier offset)"
-    )
+        return out
+    if m.offset is None and share >= OFFSET_SHARE:
+        out.append(
+            f"the records' inverse dynamics leave a constant {force:.4g} "
+            f"{force_unit(cfg.data.axis_unit)} (c_m·u fitted by inertia, viscous and Coulomb "
+            f"terms: a constant takes {share:.0%} of the residual); the model has no offset "
+            "term, so the friction curve and the inertia take it up: set model.offset = 0.0 "
+            "(gravity on a vertical or tilted axis, a cable, an amplifier offset)"
+        )
+    if m.gravity is None and cfg.data.axis_unit == "rad":
+        g, q0, share = gravity_torque(train, c_m)
+        if share >= OFFSET_SHARE:
+            fix = (
+                f"set model.gravity = {g:.3g}"
+                if abs(q0) <= GRAVITY_PHASE
+                else "re-zero q at the lowest point and set model.gravity (g_c sin q takes q = 0 "
+                "hanging straight down)"
+            )
+            out.append(
+                f"the records' inverse dynamics carry a torque {g:.3g}·sin(q − q0), lowest at "
+                f"q0 = {math.degrees(q0):.0f}° (it takes {share:.0%} of the residual), as an "
+                f"unbalanced arm does, and the model has no gravity term: {fix}"
+            )
+    return out
 
 
 def _noisy_velocity(cfg: Config, train: list[Experiment], v95: float) -> str:
