@@ -511,10 +511,11 @@ def test_a_vertical_axis_gets_its_offset_and_a_config_without_it_a_warning(user,
     assert "leave a constant 11" in out and "set model.offset = 0.0" in out
 
 
-def _pendulum(n: int, dt: float, zero_deg: float) -> dict[str, np.ndarray]:
+def _pendulum(n: int, dt: float, zero_deg: float, delay: int = 0) -> dict[str, np.ndarray]:
     """An unbalanced arm, M q̈ = u − b q̇ − Fc tanh(q̇/0.01) − g sin q (M 0.05, b 0.01, Fc 0.05,
     g 0.5), swung by two sines to about ±100°; q in degrees from a zero `zero_deg` past the
-    lowest point, as an encoder mounted anywhere reads it."""
+    lowest point, as an encoder mounted anywhere reads it; the logged u acts `delay` samples
+    late."""
     t = np.arange(n) * dt
     u = 0.45 * np.sin(2 * np.pi * 0.6 * t) + 0.2 * np.sin(2 * np.pi * 1.7 * t + 1.0)
     q = np.zeros(n)
@@ -522,7 +523,8 @@ def _pendulum(n: int, dt: float, zero_deg: float) -> dict[str, np.ndarray]:
     h = dt / 10
     for k in range(1, n):
         for _ in range(10):
-            a = (u[k - 1] - 0.01 * v - 0.05 * math.tanh(v / 0.01) - 0.5 * math.sin(x)) / 0.05
+            drive = u[k - 1 - delay] if k - 1 - delay >= 0 else 0.0
+            a = (drive - 0.01 * v - 0.05 * math.tanh(v / 0.01) - 0.5 * math.sin(x)) / 0.05
             v += h * a
             x += h * v
         q[k] = x
@@ -532,7 +534,8 @@ def _pendulum(n: int, dt: float, zero_deg: float) -> dict[str, np.ndarray]:
 def test_an_unbalanced_arm_gets_its_gravity_term_when_q_is_zero_at_the_bottom(user, capsys) -> None:  # type: ignore[no-untyped-def]
     """An arm that swings back (g sin q): init turns ``model.gravity`` on, with the amplitude
     its inverse dynamics give as the start; an encoder zeroed 90° away gets a note to re-zero q
-    and the term stays off; ``check`` of a config without it names ``model.gravity``."""
+    and the term stays off; ``check`` of a config without it names ``model.gravity``. An input
+    that acts two samples late gets ``data.input_delay = 2``."""
     rec = _pendulum(6000, 2e-3, 0.0)
     _write(user / "arm.csv", ["t", "u", "q [deg]"], [rec["t"], rec["u"], rec["q"]])
     assert main(["init", "arm.csv", "--c-m", "1"]) == 0
@@ -548,3 +551,9 @@ def test_an_unbalanced_arm_gets_its_gravity_term_when_q_is_zero_at_the_bottom(us
     out = capsys.readouterr().out
     assert "lowest point at q0 = 90°" in out and "re-zero q" in out
     assert Config.load(user / "off.toml").model.gravity is None
+    assert "input_delay" not in out  # u acts at once here
+    late = _pendulum(6000, 2e-3, 0.0, delay=2)
+    _write(user / "late.csv", ["t", "u", "q [deg]"], [late["t"], late["u"], late["q"]])
+    assert main(["init", "late.csv", "--c-m", "1"]) == 0
+    assert "fit best with u acting 2 sample(s) late" in capsys.readouterr().out
+    assert Config.load(user / "late.toml").data.input_delay == 2

@@ -4,11 +4,9 @@ sections build (`torchfric.app.config`) and the Python API takes.
 - `EKFTuning`: the iterative augmented-state EKF (`identify_ekf`, and each ensemble member);
 - `EnsembleSpec`: which members an EKF ensemble holds (`identify_ekf_ensemble`);
 - `OETuning`: output-error training (`identify_output_error`);
-- which white-box terms a record's inverse dynamics ask for, before any model is fitted
-  (`constant_force`: ``model.offset``; `gravity_torque`: ``model.gravity``): least squares of
-  ``c_m u`` on the pre-fit's moving samples by ``M q̈ + b q̇ + Fc sign(q̇)`` with and without
-  the term, whose share of the residual says whether the machine carries it. `init` turns a
-  term on from them; `check` and `train` warn when a config lacks one.
+- what a record's inverse dynamics ask for (`constant_force`, `gravity_torque`,
+  `input_delay_found`): least squares of ``c_m u`` by ``M q̈ + b q̇ + Fc sign(q̇)`` with and
+  without a term; `init` turns it on, `check` and `train` warn when a config lacks it.
 
 Why this size: every number an estimator is set by, from the config or from the data, in one
 place, so that nothing else restates a default.
@@ -49,6 +47,8 @@ __all__ = [
     "GRAVITY_PHASE",
     "constant_force",
     "gravity_torque",
+    "input_delay_found",
+    "DELAY_SHARE",
 ]
 
 REFERENCE_VELOCITY = 6.64
@@ -439,11 +439,8 @@ class OETuning:
         return self.lr_final + 0.5 * (self.lr - self.lr_final) * (1.0 + math.cos(math.pi * frac))
 
 
-OFFSET_SHARE = 0.1
-"""The share of the residual a term must take for a record to be said to carry it."""
-GRAVITY_PHASE = math.radians(20.0)
-"""The farthest from q = 0 an arm's lowest point may lie for `model.gravity` (``g_c sin q``,
-q = 0 hanging straight down) to describe it."""
+OFFSET_SHARE = 0.1  # the share of the residual a term must take for a record to carry it
+GRAVITY_PHASE = math.radians(20.0)  # the farthest from q = 0 `model.gravity`'s lowest point lies
 
 
 def _columns(experiments: Sequence[Any], c_m: float) -> tuple[list[Tensor], Tensor, Tensor]:
@@ -456,11 +453,9 @@ def _columns(experiments: Sequence[Any], c_m: float) -> tuple[list[Tensor], Tens
 
 
 def constant_force(experiments: Sequence[Any], c_m: float) -> tuple[float, float]:
-    """The constant force or torque in the records' inverse dynamics and the share of the
-    residual it takes (``1 − RMS with / RMS without``). Gravity on a 12-kg vertical axis (117.7
-    N) takes 98 %, EMPS's −3.2 N 43 %, HSM150's offset 72 %; the rig, the disc and the axes of
-    the coverage study 0.0–0.1 %. q's unit only scales M and b: the constant and its share are
-    the same in any."""
+    """The constant force in the records' inverse dynamics and the share of the residual it takes
+    (``1 − RMS with / RMS without``): a 12-kg vertical axis's 117.7 N 98 %, EMPS 43 %, HSM150
+    72 %, the rig, the disc and the coverage study's axes 0.0–0.1 %; the same in any q unit."""
     from .prefit import _least_squares
 
     cols, rhs, _ = _columns(experiments, c_m)
@@ -470,11 +465,9 @@ def constant_force(experiments: Sequence[Any], c_m: float) -> tuple[float, float
 
 
 def gravity_torque(experiments: Sequence[Any], c_m: float) -> tuple[float, float, float]:
-    """``(g, q0, share)``: the records' inverse dynamics fitted with a constant and ``s sin q + c
-    cos q = g sin(q − q0)`` (q in rad), against the constant alone: the amplitude g, the
-    position q0 of the lowest point (rad; `model.gravity` is ``g sin q``, q0 = 0) and the share
-    of the residual the pair takes. The unbalanced disc: g 4.80, q0 = 3°, 84 %; the rig, whose
-    arm is balanced, 0.0 %."""
+    """``(g, q0, share)`` of ``s sin q + c cos q = g sin(q − q0)`` (q in rad) beyond a constant in
+    the inverse dynamics: the lowest point q0 (`model.gravity` is ``g sin q``: q0 = 0) and the
+    share of the residual it takes. The disc: g 4.80, q0 = 3°, 84 %; the rig 0.0 %."""
     from .prefit import _least_squares
 
     cols, rhs, q = _columns(experiments, c_m)
@@ -483,3 +476,25 @@ def gravity_torque(experiments: Sequence[Any], c_m: float) -> tuple[float, float
     sol, with_it = _least_squares([*cols, torch.sin(q), torch.cos(q)], rhs)
     s, c = float(sol[-2]), float(sol[-1])
     return math.hypot(s, c), -math.atan2(c, s), (1.0 - with_it / without) if without > 0 else 0.0
+
+
+DELAY_SHARE = 0.2  # the share of the residual a whole-sample input delay must remove
+
+
+def input_delay_found(
+    experiments: Sequence[Any], c_m: float, rotary: bool, longest: int = 3
+) -> tuple[int, float]:
+    """``(k, share)``: the smallest input delay (`Experiment.delay_input`, ≤ `longest` samples)
+    within 2 % of the best inverse-dynamics fit (a constant, ``sin q``, ``cos q`` if `rotary`),
+    and the share of the undelayed residual it removes. The disc: 1, 60 %; EMPS 1, 2.8 %."""
+    from .prefit import _least_squares
+
+    residuals = []
+    for k in range(longest + 1):
+        cols, rhs, q = _columns([e.delay_input(k) for e in experiments], c_m)
+        cols.append(torch.ones_like(rhs))
+        if rotary:
+            cols += [torch.sin(q), torch.cos(q)]
+        residuals.append(_least_squares(cols, rhs)[1])
+    k = next(k for k, r in enumerate(residuals) if r <= 1.02 * min(residuals))
+    return k, (1.0 - residuals[k] / residuals[0]) if residuals[0] > 0 else 0.0

@@ -322,14 +322,17 @@ def terms_found(
     dynamics ask for (`torchfric.estimators.settings`, each taking at least `OFFSET_SHARE`
     of the residual): ``offset`` for a constant force, ``gravity`` for ``g sin(q − q0)`` on a
     rotary axis (its value g when the lowest point q0 is within `GRAVITY_PHASE` of 0, else None
-    and a note to re-zero q). q is unwrapped and scaled to SI from the file's unit."""
+    and a note to re-zero q), and ``input_delay`` (a [data] key) when u acting whole samples
+    late removes `DELAY_SHARE` of it. q is unwrapped and scaled to SI from the file's unit."""
     from ...data import make_experiment
     from ...data.units import position_factor, si_unit
     from ...estimators.settings import (
+        DELAY_SHARE,
         GRAVITY_PHASE,
         OFFSET_SHARE,
         constant_force,
         gravity_torque,
+        input_delay_found,
     )  # fmt: skip
 
     wrap = position.wrap_period
@@ -345,7 +348,11 @@ def terms_found(
         return found
     if share >= OFFSET_SHARE:
         found["offset"] = (0.0, _OFFSET.format(force, share))
-    if si_unit(position.unit, position.counts_per_m) == "rad":
+    rotary = si_unit(position.unit, position.counts_per_m) == "rad"
+    delay, share = input_delay_found(parts, c_m, rotary)
+    if delay and share >= DELAY_SHARE:
+        found["input_delay"] = (float(delay), _DELAY.format(delay, share))
+    if rotary:
         g, q0, share = gravity_torque(parts, c_m)
         if share >= OFFSET_SHARE:
             on = abs(q0) <= GRAVITY_PHASE
@@ -362,6 +369,10 @@ _OFFSET = (
 _GRAVITY = (
     "the record's inverse dynamics carry a torque {0:.3g}·sin(q − q0) with its lowest point at "
     "q0 = {1:.0f}° (it takes {2:.0%} of the residual), as an unbalanced arm does: {3}"
+)
+_DELAY = (
+    "the record's inverse dynamics fit best with u acting {0} sample(s) late (its residual "
+    "{1:.0%} lower than without): data.input_delay = {0}"
 )
 _GRAVITY_ON = "model.gravity is on (g_c sin q, q = 0 hanging straight down)"
 _REZERO = (

@@ -174,6 +174,10 @@ class _Plan:
         lines += _block(
             "velocity_cutoff_hz", cutoff or DEFAULT_CUTOFF_HZ["highpass"], why, active=bool(cutoff)
         )
+        delay = self.terms.get("input_delay")
+        if delay:
+            note = f"{delay[1][0].upper()}{delay[1][1:]}."
+            lines += _block("input_delay", int(delay[0]), _HELP["input_delay"], note)
         n = sum(e.n for e in self.segments) if len(self.segments) > 1 else self.exp.n
         return lines + _block("stop", n, _HELP["stop"], active=False)
 
@@ -255,6 +259,8 @@ _HELP = {
     "velocity": 'q̇ for the estimator: "highpass" (the paper\'s causal differentiator), '
     '"zero_phase" (off-line) or "measured" (the file\'s qdot column).',
     "stop": "Use samples start <= k < stop of every file (also: start = 0).",
+    "input_delay": "Whole samples by which the input acts late (sample k is driven by "
+    "u[k − input_delay]).",
     "counts_per_rev": "Encoder counts per revolution (q becomes rad); counts_per_m for a "
     "linear axis.",
     "counts_per_m": "Encoder counts per metre (q becomes m).",
