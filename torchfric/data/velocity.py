@@ -236,9 +236,13 @@ def velocity_noise(q: ArrayLike, dt: float, method: str, cutoff_hz: float | None
     On a 4096-count encoder at 1 kHz (the heavy axis of docs/results.md) it gives 0.41 rad/s
     at 200 Hz, where the reconstructed velocity is 0.42 rad/s off the truth."""
     qa = _signal(q, "velocity_noise: q", 5)[..., :200_000]
+    return math.sqrt(_white_variance(qa) * _velocity_gain(dt, method, cutoff_hz))
+
+
+def _velocity_gain(dt: float, method: str, cutoff_hz: float | None) -> float:
+    """`method`'s variance gain on unit white position noise (`_unit_draws`)."""
     unit = reconstruct_velocity(_unit_draws(), dt, method, cutoff_hz).numpy()
-    skip = settling_samples(method, dt, cutoff_hz)
-    return math.sqrt(_white_variance(qa) * float(np.var(unit[skip:])))
+    return float(np.var(unit[settling_samples(method, dt, cutoff_hz) :]))
 
 
 # The velocity noise (`velocity_noise`), as a share of the data's 95th-percentile speed, above
@@ -259,12 +263,14 @@ def quieter_cutoff_hz(
     rig is at 0.7 %."""
     if method not in DEFAULT_CUTOFF_HZ or not v95 > 0:
         return None
-    share = velocity_noise(q, dt, method, cutoff_hz) / v95
+    white = _white_variance(_signal(q, "quieter_cutoff_hz: q", 5)[..., :200_000])  # read once
+    share = math.sqrt(white * _velocity_gain(dt, method, cutoff_hz)) / v95
     if not share > NOISY_VELOCITY:
         return None
     quieter = cutoff_hz
     while (
-        quieter > cutoff_hz / 25 and velocity_noise(q, dt, method, quieter) > QUIET_VELOCITY * v95
+        quieter > cutoff_hz / 25
+        and math.sqrt(white * _velocity_gain(dt, method, quieter)) > QUIET_VELOCITY * v95
     ):
         quieter *= 10**-0.1
     return share, float(f"{quieter:.2g}")

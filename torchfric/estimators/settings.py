@@ -4,7 +4,7 @@ sections build (`torchfric.app.config`) and the Python API takes.
 - `EKFTuning`: the iterative augmented-state EKF (`identify_ekf`, and each ensemble member);
 - `EnsembleSpec`: which members an EKF ensemble holds (`identify_ekf_ensemble`);
 - `OETuning`: output-error training (`identify_output_error`);
-- what a record's inverse dynamics ask for (`constant_force`, `gravity_torque`,
+- what a record's inverse dynamics ask for (`static_terms`, `constant_force`,
   `input_delay_found`): least squares of ``c_m u`` by ``M q̈ + b q̇ + Fc sign(q̇)`` with and
   without a term; `init` turns it on, `check` and `train` warn when a config lacks it.
 
@@ -46,7 +46,7 @@ __all__ = [
     "OFFSET_SHARE",
     "GRAVITY_PHASE",
     "constant_force",
-    "gravity_torque",
+    "static_terms",
     "input_delay_found",
     "DELAY_SHARE",
 ]
@@ -452,30 +452,30 @@ def _columns(experiments: Sequence[Any], c_m: float) -> tuple[list[Tensor], Tens
     return [a, v, torch.sign(v)], c_m * u, q
 
 
-def constant_force(experiments: Sequence[Any], c_m: float) -> tuple[float, float]:
-    """The constant force in the records' inverse dynamics and the share of the residual it takes
-    (``1 − RMS with / RMS without``): a 12-kg vertical axis's 117.7 N 98 %, EMPS 43 %, HSM150
-    72 %, the rig, the disc and the coverage study's axes 0.0–0.1 %; the same in any q unit."""
-    from .prefit import _least_squares
-
-    cols, rhs, _ = _columns(experiments, c_m)
-    _, without = _least_squares(cols, rhs)
-    sol, with_it = _least_squares([*cols, torch.ones_like(rhs)], rhs)
-    return float(sol[-1]), (1.0 - with_it / without) if without > 0 else 0.0
-
-
-def gravity_torque(experiments: Sequence[Any], c_m: float) -> tuple[float, float, float]:
-    """``(g, q0, share)`` of ``s sin q + c cos q = g sin(q − q0)`` (q in rad) beyond a constant in
-    the inverse dynamics: the lowest point q0 (`model.gravity` is ``g sin q``: q0 = 0) and the
-    share of the residual it takes. The disc: g 4.80, q0 = 3°, 84 %; the rig 0.0 %."""
+def static_terms(
+    experiments: Sequence[Any], c_m: float, rotary: bool
+) -> tuple[tuple[float, float], tuple[float, float, float] | None]:
+    """``((constant, share), (g, q0, share) or None)`` from one regression: a constant and, if
+    `rotary`, ``s sin q + c cos q = g sin(q − q0)`` (q in rad) beyond it, lowest at q0 (the disc:
+    4.80, 3°, 84 %; the rig 0.0 %). A share is ``1 − RMS with / RMS without`` the term."""
     from .prefit import _least_squares
 
     cols, rhs, q = _columns(experiments, c_m)
+    _, base = _least_squares(cols, rhs)
     cols.append(torch.ones_like(rhs))
-    _, without = _least_squares(cols, rhs)
-    sol, with_it = _least_squares([*cols, torch.sin(q), torch.cos(q)], rhs)
+    sol, with_it = _least_squares(cols, rhs)
+    offset = (float(sol[-1]), (1.0 - with_it / base) if base > 0 else 0.0)
+    if not rotary:
+        return offset, None
+    sol, arm = _least_squares([*cols, torch.sin(q), torch.cos(q)], rhs)
     s, c = float(sol[-2]), float(sol[-1])
-    return math.hypot(s, c), -math.atan2(c, s), (1.0 - with_it / without) if without > 0 else 0.0
+    return offset, (math.hypot(s, c), -math.atan2(c, s), (1 - arm / with_it) if with_it else 0.0)
+
+
+def constant_force(experiments: Sequence[Any], c_m: float) -> tuple[float, float]:
+    """`static_terms`' constant and its share: a 12-kg vertical axis's 117.7 N 98 %, EMPS 43 %,
+    HSM150 72 %, the rig, the disc and the coverage study's axes 0.0–0.1 %, in any q unit."""
+    return static_terms(experiments, c_m, rotary=False)[0]
 
 
 DELAY_SHARE = 0.2  # the share of the residual a whole-sample input delay must remove

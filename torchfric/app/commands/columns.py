@@ -330,9 +330,8 @@ def terms_found(
         DELAY_SHARE,
         GRAVITY_PHASE,
         OFFSET_SHARE,
-        constant_force,
-        gravity_torque,
         input_delay_found,
+        static_terms,
     )  # fmt: skip
 
     wrap = position.wrap_period
@@ -342,18 +341,18 @@ def terms_found(
         q = np.unwrap(e.q.numpy(), period=wrap) if wrap else e.q.numpy()
         parts.append(make_experiment(e.t, e.u, q * scale, name=e.name))
     found: dict[str, tuple[float | None, str]] = {}
+    rotary = si_unit(position.unit, position.counts_per_m) == "rad"
     try:
-        force, share = constant_force(parts, c_m)
+        (force, share), arm = static_terms(parts, c_m, rotary)
     except TorchfricError:  # never moves: the check that follows says so
         return found
     if share >= OFFSET_SHARE:
         found["offset"] = (0.0, _OFFSET.format(force, share))
-    rotary = si_unit(position.unit, position.counts_per_m) == "rad"
     delay, share = input_delay_found(parts, c_m, rotary)
     if delay and share >= DELAY_SHARE:
         found["input_delay"] = (float(delay), _DELAY.format(delay, share))
-    if rotary:
-        g, q0, share = gravity_torque(parts, c_m)
+    if arm is not None:
+        g, q0, share = arm
         if share >= OFFSET_SHARE:
             on = abs(q0) <= GRAVITY_PHASE
             text = _GRAVITY.format(g, math.degrees(q0), share, _GRAVITY_ON if on else _REZERO)

@@ -193,12 +193,7 @@ def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list
     import math
 
     from ...data.units import force_unit
-    from ...estimators.settings import (
-        GRAVITY_PHASE,
-        OFFSET_SHARE,
-        constant_force,
-        gravity_torque,
-    )  # fmt: skip
+    from ...estimators.settings import GRAVITY_PHASE, OFFSET_SHARE, static_terms
 
     m, out = cfg.model, []
     if not train or (
@@ -206,8 +201,9 @@ def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list
     ):
         return out
     c_m = float(model.c_m.detach())
+    rotary = m.gravity is None and cfg.data.axis_unit == "rad"
     try:
-        force, share = constant_force(train, c_m)
+        (force, share), arm = static_terms(train, c_m, rotary)
     except TorchfricError:  # records that never move: the pre-fit says so
         return out
     if m.offset is None and share >= OFFSET_SHARE:
@@ -218,8 +214,8 @@ def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list
             "term, so the friction curve and the inertia take it up: set model.offset = 0.0 "
             "(gravity on a vertical or tilted axis, a cable, an amplifier offset)"
         )
-    if m.gravity is None and cfg.data.axis_unit == "rad":
-        g, q0, share = gravity_torque(train, c_m)
+    if arm is not None:
+        g, q0, share = arm
         if share >= OFFSET_SHARE:
             fix = (
                 f"set model.gravity = {g:.3g}"
