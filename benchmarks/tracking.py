@@ -191,13 +191,14 @@ def row(name: str, rec: dict, events: dict, final: Any, inertia: float, curve: f
             "cover": cover}  # fmt: skip
 
 
-def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float) -> list[dict]:
-    start = rig_curve(load_checkpoint(CHECKPOINT), RigParameters().changed())
+def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float,
+             checkpoint: pathlib.Path = CHECKPOINT) -> list[dict]:  # fmt: skip
+    start = rig_curve(load_checkpoint(checkpoint), RigParameters().changed())
     rows = []
     for seed in seeds:
         rec = changing_record(30.0, 90.0, seed=seed)
         write_csv(d / f"rig_c{seed}.csv", rec)
-        events, rate, wall = track(CHECKPOINT, d / f"rig_c{seed}.csv", d / f"rig_c{seed}")
+        events, rate, wall = track(checkpoint, d / f"rig_c{seed}.csv", d / f"rig_c{seed}")
         change = float(rec["change"])
         slow = (rec["t"] >= change) & (np.abs(rec["qdot_true"]) < RigParameters().vs)
         final = load_checkpoint(d / f"rig_c{seed}" / "final.pt")
@@ -210,10 +211,10 @@ def rig_rows(d: pathlib.Path, seeds: list[int], minutes: float) -> list[dict]:
     quiet = simulate_rig(p, excitation("validation", duration=n * p.dt, seed=QUIET_SEED),
                          seed=QUIET_SEED)  # fmt: skip
     write_csv(d / "rig_quiet.csv", quiet)
-    events, rate, wall = track(CHECKPOINT, d / "rig_quiet.csv", d / "rig_quiet")
+    events, rate, wall = track(checkpoint, d / "rig_quiet.csv", d / "rig_quiet")
     final = load_checkpoint(d / "rig_quiet" / "final.pt")
     rows.append(row(f"rig, unchanged, {minutes:g} min", quiet, events, final, p.inertia,
-                    rig_curve(final, p), rig_curve(load_checkpoint(CHECKPOINT), p), rate, wall,
+                    rig_curve(final, p), rig_curve(load_checkpoint(checkpoint), p), rate, wall,
                     None, bands(d / "rig_quiet", RIG_TRUTH, None)))  # fmt: skip
     return rows
 
@@ -332,6 +333,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=pathlib.Path, default=None,
                     help="folder for the axes' models and records, reused by later runs "
                     "(default: a fresh temporary folder)")  # fmt: skip
+    ap.add_argument("--rig-checkpoint", type=pathlib.Path, default=CHECKPOINT,
+                    help="the rig's model (default: the committed checkpoints/arm_tanh_ekf.pt; "
+                    "a checkpoint of `torchfric train experiments/configs/arm_tanh_ekf.toml` "
+                    "carries the run's two covariances)")  # fmt: skip
     ap.add_argument("--keep", type=pathlib.Path, default=None,
                     help="folder that keeps each record's CSV and its track output (track.csv, "
                     "track.png, final.pt) to look at (default: a temporary folder)")  # fmt: skip
@@ -344,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         cache.mkdir(parents=True, exist_ok=True)
         for m in args.machines:
             if m == "rig":
-                rows += rig_rows(d, args.seeds, args.quiet_minutes)
+                rows += rig_rows(d, args.seeds, args.quiet_minutes, args.rig_checkpoint)
             elif m == "carriage":
                 rows += carriage_rows(d, cache, args.seeds, args.quiet_minutes)
             else:

@@ -206,6 +206,29 @@ def test_outputs_are_complete_and_the_final_checkpoint_works(change_run, capsys)
     assert len(acc.Scalars("track/inertia")) == table.shape[0]
 
 
+def test_after_a_change_the_sigma_are_measured_on_the_changed_machine(change_run) -> None:  # type: ignore[no-untyped-def]
+    """Once the hold-off has gathered the changed machine's samples, the prediction-error stage
+    runs over them at the tracked θ and the σ shown from there on are the filter's times the
+    larger of the run's ratio and the new one (events.json ``remeasured``). The committed
+    checkpoint holds only its filter's P_θθ (ratio 1): its band of the rig's true viscous b
+    held it in none of the rows before the change and of the hold-off; from the re-measure on
+    in every row (the inertia: 35 % before, 100 % after)."""
+    out, _ = change_run
+    events = json.loads((out / "events.json").read_text())
+    (change,) = events["changes"]
+    (entry,) = events["remeasured"]
+    assert entry["change"] == change and entry["t"] >= change + TrackSettings().holdoff
+    assert entry["samples"] == pytest.approx(TrackSettings().holdoff / 1e-3, abs=100)
+    again = np.array(list(entry["band_scale"].values()))
+    np.testing.assert_allclose(list(events["band_scale"].values()), np.maximum(again, 1.0))
+    header = (out / "track.csv").read_text().splitlines()[0].split(",")
+    table = np.loadtxt(out / "track.csv", delimiter=",", skiprows=1)
+    t, i = table[:, 0], header.index("viscous")
+    held = np.abs(table[:, i] - RigParameters().sigma2) <= 2 * table[:, i + 1]
+    assert held[t > entry["t"]].mean() >= 0.9
+    assert held[t <= entry["t"]].mean() < 0.1
+
+
 def test_an_unchanged_record_raises_no_alarm(tmp_path) -> None:  # type: ignore[no-untyped-def]
     p = RigParameters()
     rec = simulate_rig(p, excitation("validation", duration=60.0, seed=5), seed=5)

@@ -7,9 +7,11 @@ Into its own new directory it writes, as it goes:
 
 - ``track.csv``: ``t`` and every parameter's value and σ (physical units), a row every
   ``--every`` samples; the σ are the filter's times the run's own ratio of reported to filter σ
-  (`band_scale`);
+  (`band_scale`), measured again on the changed machine after each change
+  (`torchfric.app.commands.bands`);
 - ``events.json``: ``{"changes": [t, …], "detector": {…}, "band_scale": {name: factor},
-  "warnings": […]}`` (`start_notes`), rewritten at each change;
+  "remeasured": [{change, t, samples, band_scale, seconds}, …], "warnings": […]}``
+  (`start_notes`), rewritten at each change;
 - at the end: ``final.pt`` (an ordinary checkpoint of the last estimate: evaluate, simulate,
   export, train's ``model.init`` take it), ``track.png`` (the parameter tracks with ±2σ and the
   change times) and TensorBoard logs (the same tracks, per sample index).
@@ -100,6 +102,8 @@ class _Session:
         self.settings = cfg.track  # a TrackSettings, checked (`sections.TrackConfig`)
         tuning = _tuning(raw, cfg, exp)
         theta, P_theta, self.scale = _start(raw, model, self.settings)
+        self.tuning, self.run_scale = tuning, self.scale
+        self.remeasured: list[dict[str, Any]] = []  # the band scale re-measured after changes
         self.notes = start_notes(raw)
         self.tracker = Tracker(model, theta, P_theta, tuning, self.settings, float(exp.dt),
                                every=args.every, compile=tuning.compile)  # fmt: skip
@@ -134,6 +138,18 @@ class _Session:
         for row in self.tracker.run(t, u, y):
             if self.first is None:  # the session's first chunk builds or loads the C code
                 self.first = (time.perf_counter() - start, self.tracker.samples)
+            found = self.tracker.changes
+            if len(found) > changes:
+                self._events()
+                for c in found[changes:]:
+                    self._say(f"change detected at t = {c:.3f} s; P_θθ re-opened")
+                changes = len(found)
+            if found and len(self.remeasured) < len(found):
+                if row.t >= found[-1] + self.settings.holdoff:  # the changed machine's window
+                    if block:
+                        self._write(block)
+                        block = []
+                    self._remeasure(exp, found[-1], row)
             block.append(row)
             if len(block) == _BLOCK:
                 self._write(block)
@@ -142,11 +158,25 @@ class _Session:
             self._write(block)
         self.seconds += time.perf_counter() - start
         self.seen += t.numel()
-        if len(self.tracker.changes) > changes:
-            self._events()
-            for c in self.tracker.changes[changes:]:
-                self._say(f"change detected at t = {c:.3f} s; P_θθ re-opened")
         self._say(f"{self.seen} samples tracked, t = {float(t[-1]):.3f} s")
+
+    def _remeasure(self, exp: Any, change: float, row: Any) -> None:
+        """The scale measured again on the changed machine (`remeasured_scale`) over the
+        samples from the change to `row`; the rows from there on are shown with the larger of
+        it and the run's, per parameter (`torchfric.app.commands.bands`)."""
+        from .bands import remeasured_scale
+
+        began = time.perf_counter()
+        scale, entry = remeasured_scale(self.model, exp, self.tuning, change, row)
+        entry["seconds"] = time.perf_counter() - began
+        self.remeasured.append(entry)
+        if scale is None:
+            self._say(f"σ after the change at {change:.3f} s not re-measured: {entry['failed']}")
+            return
+        self.scale = self.torch.maximum(self.run_scale, scale)
+        self._events()
+        self._say(f"σ re-measured on {entry['samples']} samples after the change at "
+                  f"{change:.3f} s")  # fmt: skip
 
     def _write(self, rows: list[Any]) -> None:
         """Rows of the tracker into track.csv (flushed) and the session's tracks."""
@@ -202,17 +232,22 @@ class _Session:
         _tensorboard(self.run, self.model.theta_names, self, px)
         seconds = time.perf_counter() - self.t0
         first_s, first_n = self.first or (0.0, 0)
-        rate = (self.tracker.samples - first_n) / max(self.seconds - first_s, 1e-9)
+        aside = sum(e["seconds"] for e in self.remeasured)  # once per change, not per sample
+        rate = (self.tracker.samples - first_n) / max(self.seconds - first_s - aside, 1e-9)
         print(
             f"torchfric: tracked {self.seen} samples in {self.seconds:.2f} s ({rate:,.0f} "
             f"samples/s, {rate * float(self.tracker.dt):,.0f}× real time, after a first chunk "
             f"of {first_s:.2f} s that built or loaded the filter's C code; {seconds:.1f} s with "
             "the outputs)"
         )
+        if self.remeasured:
+            print(f"σ re-measured on the changed machine after {len(self.remeasured)} change(s) "
+                  f"in {aside:.1f} s (events.json: remeasured)")  # fmt: skip
         wide = {n: f for n, f in zip(self.names, self.scale.tolist(), strict=True) if f > 1.0}
         if wide:
             factors = ", ".join(f"{n} ×{f:.3g}" for n, f in wide.items())
-            print(f"σ shown     the filter's × the run's reported/filter σ: {factors}")
+            again = " (re-measured after the last change)" if self.remeasured else ""
+            print(f"σ shown     the filter's × the run's reported/filter σ{again}: {factors}")
         print("changes     " + (", ".join(f"{c:.3f} s" for c in self.tracker.changes) or "none"))
         for note in self.notes:
             print(f"warning     {note}")
@@ -235,7 +270,7 @@ class _Session:
             }
         scale = dict(zip(self.names, self.scale.tolist(), strict=True))
         body = {"changes": list(self.tracker.changes), "detector": detector, "band_scale": scale,
-                "warnings": self.notes}  # fmt: skip
+                "remeasured": self.remeasured, "warnings": self.notes}  # fmt: skip
         atomic_write_text(self.run / "events.json", json.dumps(json_safe(body)[0], indent=1) + "\n")
 
     def _say(self, text: str) -> None:
@@ -255,12 +290,12 @@ def _start(raw: dict, model: Any, settings: Any) -> tuple[Any, Any, Any]:
     reads the innovations, then sees none). A checkpoint without it (written before the
     confidence stage) gives its ``P_theta``.
 
-    The scale (`band_scale`) is what the run measured of its own filter: the reported σ over
-    the filter's, per parameter. The filter's σ on a record whose noise is coloured, or whose
-    friction the class draws approximately, are that much too narrow, during tracking as at
-    the run's end; the σ the tracker shows (track.csv, the figure, final.pt's ``P_theta``)
-    are its filter's times that factor, while the filter itself keeps its own belief."""
+    The scale (`torchfric.app.commands.bands.band_scale`) is what the run measured of its own
+    filter: the reported σ over the filter's, per parameter; the σ the tracker shows
+    (track.csv, the figure, final.pt's ``P_theta``) are its filter's times that factor."""
     import torch
+
+    from .bands import band_scale
 
     theta = model.get_theta()
     state = (raw.get("estimator") or {}).get("state") or {}
@@ -291,9 +326,9 @@ def start_notes(raw: dict) -> list[str]:
     if state.get("P_theta") is not None and state.get("filter_P_theta") is None:
         notes.append(
             "this checkpoint holds only its filter's covariance (written before the run's "
-            "reported σ were kept beside it): the σ shown are the filter's own, which on a "
-            "record with coloured noise are several times too narrow; train again with this "
-            "version for σ that hold the truth"
+            "reported σ were kept beside it): until a change the σ shown are the filter's own, "
+            "which on a record with coloured noise are several times too narrow; train again "
+            "with this version for σ that hold the truth"
         )
     if (raw.get("metrics") or {}).get("converged") is False:
         notes.append(
@@ -301,18 +336,6 @@ def start_notes(raw: dict) -> list[str]:
             "directions its filter left wide can take a change up unseen"
         )
     return notes
-
-
-def band_scale(reported: Any, own: Any) -> Any:
-    """Per parameter, the reported σ over the filter's own (``sqrt(diag(P_theta) /
-    diag(filter_P_theta))``), at least 1: the tracker never shows σ narrower than its
-    filter's."""
-    import torch
-
-    reported = torch.as_tensor(reported, dtype=torch.float64)
-    ratio = torch.diagonal(reported) / torch.diagonal(own)
-    ratio = torch.where(torch.isfinite(ratio) & (ratio > 1.0), ratio, torch.ones_like(ratio))
-    return ratio.sqrt()
 
 
 def _final_checkpoint(model, cfg, theta, belief, run, tracker, samples) -> None:  # type: ignore[no-untyped-def]

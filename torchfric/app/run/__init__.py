@@ -40,6 +40,7 @@ _LAZY: dict[str, str] = {
         ["evaluate_model", "missing_terms", "result_warnings", "scoring_engine"], "assessment"
     ),
     "best_member_loglik": "monitors",
+    "covariance_at": "confidence",
 }  # fmt: skip
 
 __getattr__, __dir__ = lazy_names(__name__, globals(), _LAZY)

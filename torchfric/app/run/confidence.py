@@ -54,7 +54,10 @@ from ..config import Config
 __all__ = [
     "attach_covariance",
     "attach_oe_covariance",
+    "covariance_at",
     "offset_covariance",
+    "prediction_error",
+    "PredictionError",
     "run_identifiability",
     "PHYSICAL",
 ]
@@ -86,24 +89,14 @@ def attach_covariance(
         run_tuning, q_state=tuple(q_scale * x for x in run_tuning.q_state),  # type: ignore[arg-type]
         r=tuple(r_scale * x for x in run_tuning.r)))  # fmt: skip
     try:
-        ranked = noise_model(final, train, tuning, theta, q_scale=q_scale, r_scale=r_scale)
-    except TorchfricError as err:
-        ranked, failure = [], err
-    moving = _moving(final, train)
-    for q_scale, r_scale in ranked[:3]:  # the likeliest noise model whose filter stays healthy
-        how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving}
-        try:
-            at_kept = pem_covariance(final, train, tuning, theta, **how)
-            polished, pem, trace = pem_refine(final, train, tuning, theta, iterations=8,
-                                              start=at_kept, **how)  # fmt: skip
-            break
-        except TorchfricError as err:
-            failure = err
-    else:
+        found = prediction_error(final, train, tuning, theta, q_scale, r_scale)
+    except TorchfricError as failure:
         extra.setdefault("covariance_warnings", []).append(
             f"the ± σ are the filter's own P_θθ (too narrow as a rule): {failure}"
         )
         return
+    at_kept, polished, pem, trace = found.at_kept, found.polished, found.pem, found.trace
+    moving, q_scale, r_scale = found.moving, found.q_scale, found.r_scale
     judged = validation or train
     offset = None
     if (
@@ -113,11 +106,11 @@ def attach_covariance(
         # The one-step prediction error's optimum simulates worse (a class that cannot reach
         # the machine, e.g. a static curve for LuGre friction, trades the long horizon for the
         # short one): the kept θ stays, its σ the sandwich's at it plus its offset from the
-        # optimum (`offset_covariance`), taken as the polish's end plus the Gauss–Newton step
-        # left there (its budget ran out, ℓ still rising); a warning: `newton_step_sigma`.
+        # optimum (`offset_covariance`, `PredictionError.offset_from`); a warning:
+        # `newton_step_sigma`.
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem, offset = at_kept, polished - theta + pem.newton
+        pem, offset = at_kept, found.offset_from(theta)
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         # Its σ include its distance from the filter's kept pass (`offset_covariance`): about
         # σ where the class holds the machine, the size of its bias where it does not.
@@ -144,6 +137,63 @@ def attach_covariance(
     notes += _stuck_note(extra["covariance"])
     say(f"  covariance: prediction-error sandwich over {pem.samples} samples "
         f"({pem.blocks} blocks, bandwidth {pem.bandwidth}){notes}")  # fmt: skip
+
+
+@dataclasses.dataclass
+class PredictionError:
+    """The prediction-error stage at a θ (`prediction_error`): the sandwich there (`at_kept`),
+    the polish's end (`polished`) with its sandwich (`pem`, whose ``newton`` is the step still
+    left) and log-likelihood trace, the stuck samples left out, the noise model's factors."""
+
+    at_kept: PEMCovariance
+    polished: torch.Tensor
+    pem: PEMCovariance
+    trace: list[float]
+    moving: list[torch.Tensor] | None
+    q_scale: float
+    r_scale: float
+
+    def offset_from(self, theta: torch.Tensor) -> torch.Tensor:
+        """θ's offset from the criterion's optimum: the polish's end and the Gauss–Newton step
+        still left there (its budget ran out, ℓ still rising)."""
+        return self.polished - theta + self.pem.newton
+
+
+def prediction_error(
+    model: ArmModel, records: list[Experiment], tuning: Any, theta: torch.Tensor,
+    q_scale: float = 1.0, r_scale: float = 1.0,
+) -> PredictionError:  # fmt: skip
+    """Steps 1–3 of the module docstring at `theta` over `records` (`tuning`: q the one
+    measurement): of the three likeliest noise models the first whose filter stays healthy.
+    A `TorchfricError` that names why when none does."""
+    failure: Exception = TorchfricError("no noise model was found for the fixed-θ filter")
+    try:
+        ranked = noise_model(model, records, tuning, theta, q_scale=q_scale, r_scale=r_scale)
+    except TorchfricError as err:
+        ranked, failure = [], err
+    moving = _moving(model, records)
+    for q_scale, r_scale in ranked[:3]:
+        how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving}
+        try:
+            at_kept = pem_covariance(model, records, tuning, theta, **how)
+            polished, pem, trace = pem_refine(model, records, tuning, theta, iterations=8,
+                                              start=at_kept, **how)  # fmt: skip
+        except TorchfricError as err:
+            failure = err
+            continue
+        return PredictionError(at_kept, polished, pem, trace, moving, q_scale, r_scale)
+    raise TorchfricError(str(failure))
+
+
+def covariance_at(
+    model: ArmModel, records: list[Experiment], tuning: Any, theta: torch.Tensor
+) -> torch.Tensor:
+    """The covariance of `theta` as it stands over `records` (`tuning`: the filter's, q made
+    the one measurement): the sandwich at it plus its offset from the criterion's optimum, as a
+    run whose polish was rejected reports it (`torchfric track` after a change,
+    `torchfric.app.commands.bands`)."""
+    found = prediction_error(model, records, _position_only(tuning), theta)
+    return offset_covariance(found.at_kept.cov, found.offset_from(theta))
 
 
 def _stuck_note(cov: dict[str, Any]) -> str:
