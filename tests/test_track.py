@@ -229,6 +229,30 @@ def test_after_a_change_the_sigma_are_measured_on_the_changed_machine(change_run
     assert held[t <= entry["t"]].mean() < 0.1
 
 
+def test_a_remeasure_that_finds_no_sigma_keeps_the_runs_ratio(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """When the prediction-error stage finds no σ over the changed machine's window (every
+    noise model's filter unhealthy), the track goes on with the run's ratio, says why in
+    events.json's ``remeasured`` entry (``failed``) and on stderr, and writes every output."""
+    import torchfric.app.run as run_room
+
+    def fails(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise TorchfricError("the fixed-θ filter diverged for every noise model")
+
+    monkeypatch.setattr(run_room, "covariance_at", fails)
+    rec = changing_record(25.0, 15.0, seed=0)
+    _csv(tmp_path / "rec.csv", rec)
+    out = tmp_path / "out"
+    assert main(["track", str(CHECKPOINT), str(tmp_path / "rec.csv"), "--out", str(out)]) == 0
+    events = json.loads((out / "events.json").read_text())
+    (entry,) = events["remeasured"]
+    assert entry["failed"] == "the fixed-θ filter diverged for every noise model"
+    assert "band_scale" not in entry
+    assert "not re-measured: the fixed-θ filter diverged" in capsys.readouterr().err
+    assert set(events["band_scale"].values()) == {1.0}  # the committed run's ratio: its filter's
+    for name in ("track.csv", "final.pt", "track.png"):
+        assert (out / name).stat().st_size > 0
+
+
 def test_an_unchanged_record_raises_no_alarm(tmp_path) -> None:  # type: ignore[no-untyped-def]
     p = RigParameters()
     rec = simulate_rig(p, excitation("validation", duration=60.0, seed=5), seed=5)
