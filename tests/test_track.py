@@ -308,6 +308,11 @@ def test_an_earlier_output_is_never_overwritten(tmp_path, capsys) -> None:  # ty
     assert main(base) == 2
     assert "exists and is not empty" in capsys.readouterr().err
     assert (tmp_path / "out" / "track.csv").read_bytes() == before
+    # --out naming a file (here the earlier track.csv) says so, and the file stays as it was
+    assert main([*base[:3], "--out", str(tmp_path / "out" / "track.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "is a file" in err and "\n" not in err
+    assert (tmp_path / "out" / "track.csv").read_bytes() == before
 
 
 def test_a_calibration_with_a_light_top_does_not_make_near_misses_alarms() -> None:

@@ -55,7 +55,10 @@ def cmd_track(args: argparse.Namespace) -> int:
     out = pathlib.Path(args.out)
     if not args.data.startswith("rig:") and pathlib.Path(args.data).resolve() == out.resolve():
         raise TorchfricError(f"--out {out} is the data file; give a new directory")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if out.exists() and not out.is_dir():
+        raise TorchfricError(f"--out {out} is a file; torchfric track writes into a directory: "
+                             "give a new one")  # fmt: skip
+    if out.exists() and any(out.iterdir()):
         raise TorchfricError(
             f"--out {out} exists and is not empty; torchfric track writes only into a new or "
             "empty directory, never over an earlier one: give another --out"
