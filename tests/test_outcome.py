@@ -208,7 +208,8 @@ def test_train_prints_a_summary_and_json_has_sigma_best_pass_and_files(
         gain = f"{hist[-1]['loglik'] - hist[-2]['loglik']:.2g}"
         assert (
             f"NOT converged: the last of all 3 passes still raised the innovation log-likelihood "
-            f"by {gain} nats (estimator.tolerance 0 × the parameters); raise estimator.passes"
+            f"by {gain} nats (estimator.tolerance 0 × {len(m['parameters'])} parameters = 0 "
+            "nats); raise estimator.passes"
         ) in out
     inertia = m["parameters"]["inertia"]
     assert f"inertia  {inertia['value']:.6g} ± {inertia['std']:.2g}" in out

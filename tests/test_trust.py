@@ -166,7 +166,8 @@ def test_result_warnings_name_what_is_almost_certainly_wrong() -> None:
     assert "validation v: FIT on q is -105.0 %" in text and "test x: FIT on q is None" in text
     assert (
         "stopped at the pass limit (estimator.passes = 30) with the innovation log-likelihood "
-        "still rising by 3.25 nats a pass, above estimator.tolerance 0.5 × the parameters: "
+        "still rising by 3.25 nats a pass, above estimator.tolerance 0.5 × "
+        f"{model.num_parameters} parameters = {0.5 * model.num_parameters:.3g} nats: "
         "raise estimator.passes"
     ) in text
 

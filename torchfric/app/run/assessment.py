@@ -171,9 +171,10 @@ def result_warnings(
         out.append(
             f"stopped at the pass limit (estimator.passes = {cfg.estimator.passes}) with the "
             f"innovation log-likelihood still rising{moving} a pass, above estimator.tolerance "
-            f"{cfg.estimator.tolerance:g} × the parameters: raise estimator.passes (each pass over "
-            f"{metrics.get('samples_per_pass', 'the')} samples is cheap); the kept pass stands "
-            f"meanwhile{_noisy_velocity(cfg, train or [], v95)}"
+            f"{cfg.estimator.tolerance:g} × {final.num_parameters} parameters = "
+            f"{cfg.estimator.tolerance * final.num_parameters:.3g} nats: raise estimator.passes "
+            f"(each pass over {metrics.get('samples_per_pass', 'the')} samples is cheap); the "
+            f"kept pass stands meanwhile{_noisy_velocity(cfg, train or [], v95)}"
         )
     ident = metrics.get("identifiability") or {}
     out += [m for m in ident.get("messages", []) if not m.startswith("(within")]

@@ -193,12 +193,13 @@ def parameter_lines(table: dict[str, Any], limit: int = 12) -> list[str]:
 
 _STOPPED = {
     "converged": "converged in {total} {units}: the last raised the innovation log-likelihood "
-    "by {gain} nats (below estimator.tolerance {tolerance} × the parameters)",
+    "by {gain} nats (below estimator.tolerance {tolerance} × {k} parameters = {limit} nats)",
     "early": "converged: the validation score stopped improving (estimator.patience)",
     "rolled_back": "converged in {total} {units}: the last lowered the innovation likelihood "
     "and was undone, so the pass before is the filter's best fit of the data",
     "budget": "NOT converged: the last of all {total} {units} still raised the innovation "
-    "log-likelihood by {gain} nats (estimator.tolerance {tolerance} × the parameters); raise "
+    "log-likelihood by {gain} nats (estimator.tolerance {tolerance} × {k} parameters = {limit} "
+    "nats); raise "
     "estimator.passes; the kept pass is the one that {kept_by}",
     "budget_oe": "NOT converged: the validation score was still improving at the last of the "
     "{total} epochs; run more, e.g. --set estimator.epochs={more}",
@@ -258,6 +259,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
                 change=_g(metrics.get("last_change")),
                 gain=_g(metrics.get("last_gain")),
                 tolerance=_g(metrics.get("tolerance")),
+                k=len(metrics["parameters"]),
+                limit=_g((metrics.get("tolerance") or 0.0) * len(metrics["parameters"])),
                 kept_by="validated best" if metrics.get("validation") else "fit the data best",
             )  # fmt: skip
         )
