@@ -387,9 +387,10 @@ def _track_figure(names, session):  # type: ignore[no-untyped-def]
         if i >= len(names):
             ax.set_visible(False)
             continue
-        ax.fill_between(t, vals[:, i] - 2 * stds[:, i], vals[:, i] + 2 * stds[:, i],
-                        color="C0", alpha=0.25, lw=0)  # fmt: skip
+        lo, hi = vals[:, i] - 2 * stds[:, i], vals[:, i] + 2 * stds[:, i]
+        ax.fill_between(t, lo, hi, color="C0", alpha=0.25, lw=0)
         ax.plot(t, vals[:, i], "C0", lw=1.0)
+        _robust_limits(ax, lo, hi)
         for c in changes:
             ax.axvline(c, color="C3", lw=1.0, ls="--")
             if i == 0:  # each change's time, once, at the top of the first panel
@@ -397,10 +398,23 @@ def _track_figure(names, session):  # type: ignore[no-untyped-def]
                         transform=ax.get_xaxis_transform())  # fmt: skip
         ax.set_title(names[i], fontsize=9)
         ax.tick_params(labelsize=7)
-    axes.flat[0].set_xlabel("t [s]", fontsize=8)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]", fontsize=8)
     fig.suptitle(f"tracked parameters, ±2σ; red: {len(changes)} detected change(s)", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def _robust_limits(ax, lo, hi) -> None:  # type: ignore[no-untyped-def]
+    """The panel's y range from the 1st to the 99th percentile of its band, when the whole
+    band spans more than three times that (a re-opened P_θθ's spike after a change would
+    otherwise flatten every other row of the track)."""
+    import numpy as np
+
+    low, high = np.nanpercentile(lo, 1), np.nanpercentile(hi, 99)
+    span = high - low
+    if np.isfinite(span) and span > 0 and np.nanmax(hi) - np.nanmin(lo) > 3 * span:
+        ax.set_ylim(low - 0.1 * span, high + 0.1 * span)
 
 
 def _tensorboard(run, names, session, px) -> None:  # type: ignore[no-untyped-def]
