@@ -236,13 +236,14 @@ def velocity_noise(q: ArrayLike, dt: float, method: str, cutoff_hz: float | None
     On a 4096-count encoder at 1 kHz (the heavy axis of docs/results.md) it gives 0.41 rad/s
     at 200 Hz, where the reconstructed velocity is 0.42 rad/s off the truth."""
     qa = _signal(q, "velocity_noise: q", 5)[..., :200_000]
-    return math.sqrt(_white_variance(qa) * _velocity_gain(dt, method, cutoff_hz))
+    return _noise_std(_white_variance(qa), dt, method, cutoff_hz)
 
 
-def _velocity_gain(dt: float, method: str, cutoff_hz: float | None) -> float:
-    """`method`'s variance gain on unit white position noise (`_unit_draws`)."""
+def _noise_std(white: float, dt: float, method: str, cutoff_hz: float | None) -> float:
+    """The velocity noise of white position noise of variance `white`: `method`'s variance gain
+    on unit white noise (`_unit_draws`)."""
     unit = reconstruct_velocity(_unit_draws(), dt, method, cutoff_hz).numpy()
-    return float(np.var(unit[settling_samples(method, dt, cutoff_hz) :]))
+    return math.sqrt(white * float(np.var(unit[settling_samples(method, dt, cutoff_hz) :])))
 
 
 # The velocity noise (`velocity_noise`), as a share of the data's 95th-percentile speed, above
@@ -264,13 +265,12 @@ def quieter_cutoff_hz(
     if method not in DEFAULT_CUTOFF_HZ or not v95 > 0:
         return None
     white = _white_variance(_signal(q, "quieter_cutoff_hz: q", 5)[..., :200_000])  # read once
-    share = math.sqrt(white * _velocity_gain(dt, method, cutoff_hz)) / v95
+    share = _noise_std(white, dt, method, cutoff_hz) / v95
     if not share > NOISY_VELOCITY:
         return None
     quieter = cutoff_hz
     while (
-        quieter > cutoff_hz / 25
-        and math.sqrt(white * _velocity_gain(dt, method, quieter)) > QUIET_VELOCITY * v95
+        quieter > cutoff_hz / 25 and _noise_std(white, dt, method, quieter) > QUIET_VELOCITY * v95
     ):
         quieter *= 10**-0.1
     return share, float(f"{quieter:.2g}")

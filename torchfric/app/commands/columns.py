@@ -326,13 +326,8 @@ def terms_found(
     late removes `DELAY_SHARE` of it. q is unwrapped and scaled to SI from the file's unit."""
     from ...data import make_experiment
     from ...data.units import position_factor, si_unit
-    from ...estimators.settings import (
-        DELAY_SHARE,
-        GRAVITY_PHASE,
-        OFFSET_SHARE,
-        input_delay_found,
-        static_terms,
-    )  # fmt: skip
+    from ...estimators.settings import DELAY_SHARE, input_delay_found
+    from ..run import needed_terms
 
     wrap = position.wrap_period
     scale = position_factor(position.unit, position.counts_per_rev, position.counts_per_m)
@@ -342,21 +337,19 @@ def terms_found(
         parts.append(make_experiment(e.t, e.u, q * scale, name=e.name))
     found: dict[str, tuple[float | None, str]] = {}
     rotary = si_unit(position.unit, position.counts_per_m) == "rad"
+    needed = needed_terms(parts, c_m, rotary)
+    if "offset" in needed:
+        found["offset"] = (0.0, _OFFSET.format(*needed["offset"]))
     try:
-        (force, share), arm = static_terms(parts, c_m, rotary)
+        delay, share = input_delay_found(parts, c_m, rotary)
     except TorchfricError:  # never moves: the check that follows says so
-        return found
-    if share >= OFFSET_SHARE:
-        found["offset"] = (0.0, _OFFSET.format(force, share))
-    delay, share = input_delay_found(parts, c_m, rotary)
+        delay, share = 0, 0.0
     if delay and share >= DELAY_SHARE:
         found["input_delay"] = (float(delay), _DELAY.format(delay, share))
-    if arm is not None:
-        g, q0, share = arm
-        if share >= OFFSET_SHARE:
-            on = abs(q0) <= GRAVITY_PHASE
-            text = _GRAVITY.format(g, math.degrees(q0), share, _GRAVITY_ON if on else _REZERO)
-            found["gravity"] = (float(f"{g:.3g}") if on else None, text)
+    if "gravity" in needed:
+        g, q0, share, on = needed["gravity"]
+        text = _GRAVITY.format(g, math.degrees(q0), share, _GRAVITY_ON if on else _REZERO)
+        found["gravity"] = (float(f"{g:.3g}") if on else None, text)
     return found
 
 

@@ -37,7 +37,8 @@ _LAZY: dict[str, str] = {
         ["keep_best", "parameter_lines", "parameter_table", "summary_lines"], "outcome"
     ),
     **dict.fromkeys(
-        ["evaluate_model", "missing_terms", "result_warnings", "scoring_engine"], "assessment"
+        ["evaluate_model", "missing_terms", "needed_terms", "result_warnings", "scoring_engine"],
+        "assessment",
     ),
     "best_member_loglik": "monitors",
     "covariance_at": "confidence",

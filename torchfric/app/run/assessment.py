@@ -14,7 +14,10 @@ from ...models.arm import ArmModel
 from ..artifacts import read_checkpoint
 from ..config import Config
 
-__all__ = ["evaluate_model", "missing_terms", "result_warnings", "provenance", "scoring_engine"]
+__all__ = [
+    "evaluate_model", "missing_terms", "needed_terms", "result_warnings", "provenance",
+    "scoring_engine",
+]  # fmt: skip
 
 
 def scoring_engine(cfg: Config) -> str:
@@ -185,6 +188,27 @@ def result_warnings(
     return out
 
 
+def needed_terms(experiments: list[Experiment], c_m: float, rotary: bool) -> dict[str, tuple]:
+    """The white-box terms of `torchfric.estimators.settings.static_terms` that take at least
+    `OFFSET_SHARE` of the residual:
+    ``{"offset": (constant, share), "gravity": (g, q0, share, at_zero)}``, ``at_zero`` when the
+    lowest point q0 lies within `GRAVITY_PHASE` of q = 0 (``model.gravity``'s ``g_c sin q``
+    takes q = 0 hanging down). Empty for records that never move. What `init` turns on and
+    `check`/`train` warn of (`torchfric.app.commands.columns.terms_found`, `missing_terms`)."""
+    from ...estimators.settings import GRAVITY_PHASE, OFFSET_SHARE, static_terms
+
+    try:
+        (force, share), arm = static_terms(experiments, c_m, rotary)
+    except TorchfricError:  # never moves: the pre-fit and check say so
+        return {}
+    found: dict[str, tuple] = {}
+    if share >= OFFSET_SHARE:
+        found["offset"] = (force, share)
+    if arm is not None and arm[2] >= OFFSET_SHARE:
+        found["gravity"] = (*arm, abs(arm[1]) <= GRAVITY_PHASE)
+    return found
+
+
 def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list[str]:
     """Warnings for white-box terms the records' inverse dynamics ask for and the model lacks
     (`torchfric.estimators.settings`, each taking at least `OFFSET_SHARE` of the residual):
@@ -194,20 +218,16 @@ def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list
     import math
 
     from ...data.units import force_unit
-    from ...estimators.settings import GRAVITY_PHASE, OFFSET_SHARE, static_terms
 
     m, out = cfg.model, []
     if not train or (
         m.offset is not None and (m.gravity is not None or cfg.data.axis_unit != "rad")
     ):
         return out
-    c_m = float(model.c_m.detach())
     rotary = m.gravity is None and cfg.data.axis_unit == "rad"
-    try:
-        (force, share), arm = static_terms(train, c_m, rotary)
-    except TorchfricError:  # records that never move: the pre-fit says so
-        return out
-    if m.offset is None and share >= OFFSET_SHARE:
+    needed = needed_terms(train, float(model.c_m.detach()), rotary)
+    if m.offset is None and "offset" in needed:
+        force, share = needed["offset"]
         out.append(
             f"the records' inverse dynamics leave a constant {force:.4g} "
             f"{force_unit(cfg.data.axis_unit)} (c_m·u fitted by inertia, viscous and Coulomb "
@@ -215,20 +235,19 @@ def missing_terms(cfg: Config, model: ArmModel, train: list[Experiment]) -> list
             "term, so the friction curve and the inertia take it up: set model.offset = 0.0 "
             "(gravity on a vertical or tilted axis, a cable, an amplifier offset)"
         )
-    if arm is not None:
-        g, q0, share = arm
-        if share >= OFFSET_SHARE:
-            fix = (
-                f"set model.gravity = {g:.3g}"
-                if abs(q0) <= GRAVITY_PHASE
-                else "re-zero q at the lowest point and set model.gravity (g_c sin q takes q = 0 "
-                "hanging straight down)"
-            )
-            out.append(
-                f"the records' inverse dynamics carry a torque {g:.3g}·sin(q − q0), lowest at "
-                f"q0 = {math.degrees(q0):.0f}° (it takes {share:.0%} of the residual), as an "
-                f"unbalanced arm does, and the model has no gravity term: {fix}"
-            )
+    if "gravity" in needed:
+        g, q0, share, at_zero = needed["gravity"]
+        fix = (
+            f"set model.gravity = {g:.3g}"
+            if at_zero
+            else "re-zero q at the lowest point and set model.gravity (g_c sin q takes q = 0 "
+            "hanging straight down)"
+        )
+        out.append(
+            f"the records' inverse dynamics carry a torque {g:.3g}·sin(q − q0), lowest at "
+            f"q0 = {math.degrees(q0):.0f}° (it takes {share:.0%} of the residual), as an "
+            f"unbalanced arm does, and the model has no gravity term: {fix}"
+        )
     return out
 
 
