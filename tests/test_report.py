@@ -254,3 +254,70 @@ def test_a_parameter_without_sigma_is_explained_by_what_the_run_had() -> None:
     assert "0.36 ± –" in held and "held at its bound" in held and "no covariance" not in held
     bare = _parameters({"parameters": {"W1[3]": {"value": 0.36, "std": None}}})
     assert "no covariance was computed" in bare and "held at its bound" not in bare
+
+
+# -- the painter: figures drawn in a helper process --------------------------------------------
+def _friction_spec_of_a_model():  # type: ignore[no-untyped-def]
+    from torchfric.app.artifacts.figures import friction_spec
+
+    model = ArmModel(OddTanhFriction(3), inertia=0.03, viscous=0.01, c_m=16.0)
+    P = torch.eye(model.num_parameters, dtype=torch.float64) * 1e-4
+    return friction_spec(model, 5.0, "a model", "rad", P)
+
+
+def test_the_painter_draws_the_same_png_as_this_process() -> None:
+    """The helper's figure is byte for byte the one `render` draws here, for every spec
+    submitted, in any order of collection; after `close` nothing is lost."""
+    from torchfric.app.artifacts.drawing import render
+    from torchfric.app.artifacts.painter import Painter
+
+    spec = _friction_spec_of_a_model()
+    history = [{"index": i, "parameters": {"inertia": 0.03 + 1e-3 * i, "viscous": 0.01}}
+               for i in range(1, 4)]  # fmt: skip
+    trajectory = ("trajectory", {"history": history, "best": 2})
+    painter = Painter()
+    painter.start()
+    ids = [painter.submit(*spec), painter.submit(*trajectory), painter.submit(*spec)]
+    assert painter._proc is not None  # a helper is running, not the fallback
+    got = {fid: painter.png(fid) for fid in reversed(ids)}
+    painter.close()
+    assert got[ids[0]] == got[ids[2]] == render(*spec)
+    assert got[ids[1]] == render(*trajectory)
+    assert _png_size(got[ids[0]]) == (600, 520)
+
+
+def test_a_painter_that_cannot_draw_falls_back_to_this_process(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A helper that dies (here: a Python that cannot import torchfric) or is switched off
+    (TORCHFRIC_PAINTER=0) costs nothing but time: each figure is drawn here, the same PNG; a
+    spec the helper fails on is drawn here, where its error is raised."""
+    import subprocess
+    import sys
+
+    from torchfric.app.artifacts import painter as painter_module
+    from torchfric.app.artifacts.drawing import render
+
+    spec = _friction_spec_of_a_model()
+    real_popen = subprocess.Popen
+
+    def broken(args, **kwargs):  # type: ignore[no-untyped-def]
+        return real_popen([sys.executable, "-c", "import sys; sys.exit(3)"], **kwargs)
+
+    monkeypatch.setattr(painter_module.subprocess, "Popen", broken)
+    dead = painter_module.Painter()
+    assert dead.png(dead.submit(*spec)) == render(*spec)
+    dead.close()
+    monkeypatch.undo()
+
+    monkeypatch.setenv("TORCHFRIC_PAINTER", "0")
+    off = painter_module.Painter()
+    fid = off.submit(*spec)
+    assert off._proc is None and off.ready(fid) and off.png(fid) == render(*spec)
+    monkeypatch.delenv("TORCHFRIC_PAINTER")
+
+    alive = painter_module.Painter()
+    bad = alive.submit("friction", {**spec[1], "v": None})  # the helper's render raises
+    with pytest.raises((TypeError, AttributeError)):
+        alive.png(bad)
+    good = alive.submit(*spec)
+    assert alive.png(good) == render(*spec)  # the helper is still drawing
+    alive.close()

@@ -323,7 +323,7 @@ def _figures(
     parts.append(f"<h2>Parameters over the {plural}</h2>")
     if history:
         caption = f"each parameter after every {what}; the kept one marked (red, dashed)"
-        parts.append(_figure(trajectory_figure(history, best), caption))
+        parts.append(_figure(drawn("trajectory", trajectory_figure, history, best), caption))
     else:
         parts.append("<p>No pass history.</p>")
     return "".join(parts)
@@ -356,9 +356,10 @@ def report_html(
         validation: the validation records, and `scores` their open-loop scores by name.
         v_max: the friction curve's velocity range ±v_max; `unit` the data's position unit.
         created: the date shown (default now).
-        images: figures of `model` already drawn, as PNG by TensorBoard tag
-            (``friction_curve``, ``validation/NAME``, ``residuals/NAME``; see
-            `torchfric.app.artifacts.figures.model_figures`): used as they are instead of drawn again.
+        images: figures already drawn, as PNG by TensorBoard tag (``friction_curve``,
+            ``validation/NAME``, ``residuals/NAME``; see
+            `torchfric.app.artifacts.figures.model_specs`) and ``trajectory``
+            (`trajectory_spec` of `history`): used as they are instead of drawn again.
     """
     created = created or dt.datetime.now()
     best = metrics.get("best_pass", metrics.get("best_epoch"))

@@ -3,9 +3,9 @@
 - `ValidationScores`: the open-loop scores of each pass's model on the validation records (the
   first observer of a run: the others read its scores, and the run keeps the pass it scores
   best);
-- `KeptFigures`: a model's figures drawn to pixels (friction curve with its ±2σ band, each
-  validation record's response and residuals); the kept model's once per run, for TensorBoard
-  and report.html alike;
+- `KeptFigures`: a model's figures (friction curve with its ±2σ band, each validation
+  record's response and residuals), drawn as PNG by the run's helper process; the kept
+  model's once per run, for TensorBoard and report.html alike;
 - `ProgressLines`: the progress lines (``say``) in and after each pass or epoch, and tqdm bars
   on a terminal;
 - the helpers that format a pass for them (`ekf_scalars`, `fit_text`, `duration`,
@@ -29,7 +29,7 @@ from ...estimators.metrics import SimulationScore, mean_fit
 from ...estimators.observers import Callback, RunEnd, RunStart
 from ...estimators.output_error import EpochRecord, OEResult
 from ...models.arm import ArmModel
-from ..artifacts import model_figures, pixels
+from ..artifacts import model_specs, render, shared_painter, trajectory_spec
 from ..config import Config
 from .assessment import evaluate_model
 
@@ -147,11 +147,17 @@ class ValidationScores(Callback):
 
 
 class KeptFigures:
-    """Draws a model's figures to pixels (`draw`); the kept model's once per run (`kept`)."""
+    """A model's figures (`draw`), drawn as PNG in the process's helper
+    (`torchfric.app.artifacts.shared_painter`, started here) while the run goes on; the kept model's
+    once per run (`kept`), with the report's parameter trajectories (`trajectory`). A drawing
+    is a mapping of tag to figure id; `pngs` collects it."""
 
     def __init__(self, cfg: Config, validation: Sequence[Experiment], v_max: float) -> None:
         self.cfg, self.validation, self.v_max = cfg, list(validation), v_max
-        self._kept: tuple[RunEnd, dict[str, Any]] | None = None
+        self._kept: tuple[RunEnd, dict[str, int]] | None = None
+        self._pngs: dict[int, bytes] = {}
+        self.trajectory: bytes | None = None  # the kept run's parameter trajectories (PNG)
+        self.painter = shared_painter()
 
     def draw(
         self,
@@ -159,18 +165,36 @@ class KeptFigures:
         model: ArmModel,
         P_theta: Any,
         scores: Mapping[str, SimulationScore],
-    ) -> dict[str, Any]:
-        """`model`'s figures (`model_figures`) at `step`, drawn to pixels, by tag."""
-        figs = model_figures(
+    ) -> dict[str, int]:
+        """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag."""
+        specs = model_specs(
             model, self.v_max, f"pass {step}", self.cfg.data.axis_unit, P_theta,
             self.validation, dict(scores),
         )  # fmt: skip
-        return {tag: pixels(fig) for tag, fig in figs.items()}
+        return {tag: self.painter.submit(*spec) for tag, spec in specs.items()}
 
-    def kept(self, end: RunEnd) -> dict[str, Any]:
-        """The kept model's figures (`draw`), drawn at the first call for `end`."""
+    def ready(self, drawing: Mapping[str, int]) -> bool:
+        """Whether `pngs` of `drawing` returns without waiting."""
+        return all(f in self._pngs or self.painter.ready(f) for f in drawing.values())
+
+    def pngs(self, drawing: Mapping[str, int]) -> dict[str, bytes]:
+        """The PNG of each figure of `drawing`, by tag (waiting for the painter)."""
+        for fid in drawing.values():
+            if fid not in self._pngs:
+                self._pngs[fid] = self.painter.png(fid)
+        return {tag: self._pngs[fid] for tag, fid in drawing.items()}
+
+    def kept(self, end: RunEnd) -> dict[str, int]:
+        """The kept model's figures (`draw`), handed over at the first call for `end`; then,
+        while the painter draws them, its parameters over the passes or epochs drawn here
+        (`trajectory`, for report.html): the run waits for both at once, not one after the
+        other."""
         if self._kept is None or self._kept[0] is not end:
             self._kept = (end, self.draw(end.step, end.model, end.covariance, end.scores))
+            self.trajectory = None
+            if end.history:
+                best = end.metrics.get("best_pass", end.metrics.get("best_epoch"))
+                self.trajectory = render(*trajectory_spec(end.history, best))
         return self._kept[1]
 
 

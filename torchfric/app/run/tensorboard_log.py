@@ -11,6 +11,7 @@ scalars: the HParams tab reads a metric's value from the scalar of the same tag 
 from __future__ import annotations
 
 import math
+import struct
 import time
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -20,7 +21,7 @@ from ...estimators.identify import EKFResult, PassRecord
 from ...estimators.observers import Callback, RunEnd, RunStart
 from ...estimators.output_error import EpochRecord, OEResult
 from ...models.arm import ArmModel
-from ..artifacts import friction_figure, pixels
+from ..artifacts import friction_spec
 from ..config import Config
 from .monitors import (
     KeptFigures,
@@ -113,7 +114,8 @@ class TensorBoardLog(Callback):
         self.model = model  # the starting model: it splits an ensemble's θ into parameters
         self.drawn_at = time.perf_counter()
         # figures owed, by step: the start's (step 0) and the latest pass's or epoch's
-        self.owed: dict[int, Callable[[], None]] = {}
+        self.owed: dict[int, Callable[[], dict[str, int]]] = {}
+        self.pending: dict[int, dict[str, int]] = {}  # handed to the painter, not yet written
         self.drawn: set[int] = set()  # the steps whose figures are written
         self.members_layout = False  # the Custom Scalars layout of the ensemble's members
         writer.add_text("config", f"```toml\n{cfg.to_toml()}```", 0)
@@ -125,37 +127,54 @@ class TensorBoardLog(Callback):
             return time.perf_counter() - self.drawn_at >= self.AUTO_SECONDS
         return every > 0 and step % every == 0
 
-    def figures(self, step: int, draw: Callable[[], None]) -> None:
-        """Draw `step`'s figures with `draw` now when `due`, else owe them: the latest owed
-        figures replace the previous pass's (the start's are kept)."""
-        if self.due(step):
+    def figures(self, step: int, draw: Callable[[], dict[str, int]]) -> None:
+        """Hand `step`'s figures to the painter with `draw` now when it is the start's (the
+        painter draws them while the run goes on) or `due`, else owe them: the latest owed
+        figures replace the previous pass's. Figures handed over are written when drawn
+        (`write_drawn`)."""
+        if step == 0 or self.due(step):
             self.owed.pop(step, None)
-            draw()
-            self.drawn_at = time.perf_counter()
+            self.pending[step] = draw()
+            if step:
+                self.drawn_at = time.perf_counter()
             return
         self.owed = {k: v for k, v in self.owed.items() if k == 0}
         self.owed[step] = draw
 
-    def add_images(self, step: int, images: dict[str, Any]) -> None:
-        """Figures drawn to pixels (`pixels`), by tag, at `step`."""
-        for tag, chw in images.items():
-            self.writer.add_image(tag, chw, step, dataformats="CHW")
-        self.drawn.add(step)
+    def write_drawn(self, wait: bool = False) -> None:
+        """Write the figures the painter has drawn (all of them, waiting, with `wait`)."""
+        for step in sorted(self.pending):
+            if wait or self.drawing.ready(self.pending[step]):
+                for tag, png in self.drawing.pngs(self.pending.pop(step)).items():
+                    self._add_png(tag, png, step)
+                self.drawn.add(step)
 
-    def finish(self, kept: tuple[int, dict[str, Any]] | None = None) -> None:
-        """The figures still owed, drawn at the run's end: the start's, and the final model's.
+    def _add_png(self, tag: str, png: bytes, step: int) -> None:
+        """An image summary of PNG bytes, as ``add_image`` writes one (without encoding the
+        pixels again)."""
+        from tensorboard.compat.proto.summary_pb2 import Summary
 
-        `kept` is ``(step, pixels by tag)`` of the model the run keeps (its best pass or
+        width, height = struct.unpack(">II", png[16:24])  # the IHDR chunk
+        image = Summary.Image(height=height, width=width, colorspace=3, encoded_image_string=png)
+        summary = Summary(value=[Summary.Value(tag=tag, image=image)])
+        self.writer._get_file_writer().add_summary(summary, step)
+
+    def finish(self, kept: tuple[int, dict[str, int]] | None = None) -> None:
+        """The figures still owed, handed over at the run's end and written with the others.
+
+        `kept` is ``(step, figures by tag)`` of the model the run keeps (its best pass or
         epoch), drawn once for TensorBoard and report.html alike; it takes the place of the
         last pass's owed figures. Without it (a diverged run) the last pass's are drawn."""
         if 0 in self.owed:
-            self.owed.pop(0)()
+            self.pending[0] = self.owed.pop(0)()
         if kept is not None:
             self.owed.clear()
-            if kept[0] not in self.drawn:
-                self.add_images(*kept)
+            step, drawing = kept
+            if step not in self.drawn and step not in self.pending:
+                self.pending[step] = drawing
         for step in sorted(self.owed):
-            self.owed.pop(step)()
+            self.pending[step] = self.owed.pop(step)()
+        self.write_drawn(wait=True)
         self.writer.flush()
 
     def log_model(
@@ -176,10 +195,8 @@ class TensorBoardLog(Callback):
         # never changed by the estimator), and the scores are replaced, never changed.
         latest = self.scores.latest
 
-        def draw() -> None:
-            self.add_images(step, self.drawing.draw(step, model, P_theta, latest))
-
-        self.figures(step, draw)
+        self.figures(step, lambda: self.drawing.draw(step, model, P_theta, latest))
+        self.write_drawn()
         self.writer.flush()
 
     def on_run_start(self, start: RunStart) -> None:
@@ -285,7 +302,8 @@ class TensorBoardLog(Callback):
                 w.add_scalar(f"validation/{name}/fit_qdot", f["fit_qdot"], record.index)
             title = f"epoch {record.index} (best {result.best_epoch})"
             model, step, unit = result.model, record.index, self.cfg.data.axis_unit
-            self.figures(step, lambda: self.add_images(step, {
-                "friction_curve": pixels(friction_figure(model, self.v_max, title, unit))}))  # fmt: skip
+            self.figures(step, lambda: {"friction_curve": self.drawing.painter.submit(
+                *friction_spec(model, self.v_max, title, unit))})  # fmt: skip
+            self.write_drawn()
         w.flush()
         return None

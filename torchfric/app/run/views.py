@@ -14,7 +14,7 @@ from typing import TextIO
 from ...data import Experiment
 from ...estimators.observers import Callback, CallbackList, RunEnd
 from ...models.arm import ArmModel
-from ..artifacts import png_from_pixels, write_report
+from ..artifacts import write_report
 from ..config import Config
 from .monitors import KeptFigures, Printer, ProgressLines, ValidationScores
 from .snapshots import Snapshots
@@ -25,19 +25,21 @@ __all__ = ["ReportPage", "run_observers"]
 
 class ReportPage(Callback):
     """Writes ``report.html`` in the run directory when the run ends, with the kept model's
-    figures from `drawing` (the pixels TensorBoard shows)."""
+    figures from `drawing` (the PNGs TensorBoard shows) and its parameter trajectories."""
 
     def __init__(self, cfg: Config, run_dir: pathlib.Path, drawing: KeptFigures) -> None:
         self.cfg, self.run_dir, self.drawing = cfg, run_dir, drawing
 
     def on_run_end(self, end: RunEnd) -> None:
-        images = self.drawing.kept(end)
+        images = self.drawing.pngs(self.drawing.kept(end))
+        if self.drawing.trajectory is not None:
+            images["trajectory"] = self.drawing.trajectory
         write_report(
             self.run_dir / "report.html", title=self.cfg.name, model=end.model,
             metrics=dict(end.metrics), history=list(end.history),
             validation=self.drawing.validation, scores=dict(end.scores),
             v_max=self.drawing.v_max, unit=self.cfg.data.axis_unit, P_theta=end.covariance,
-            images={tag: png_from_pixels(px) for tag, px in images.items()},
+            images=images,
         )  # fmt: skip
 
 
