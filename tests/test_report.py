@@ -321,3 +321,52 @@ def test_a_painter_that_cannot_draw_falls_back_to_this_process(monkeypatch) -> N
     good = alive.submit(*spec)
     assert alive.png(good) == render(*spec)  # the helper is still drawing
     alive.close()
+
+
+def test_the_kept_figures_handed_over_early_are_not_drawn_again(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The responses, residuals and trajectories handed over when the estimator ends are the
+    ones the run's end uses (only the friction curve, which needs the σ, is added); a model
+    that changed in between (a polish the run keeps) gets all its figures drawn anew."""
+    import dataclasses
+
+    from torchfric.app.config import Config
+    from torchfric.app.run import load_data
+    from torchfric.app.run import monitors
+    from torchfric.estimators.observers import RunEnd
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.kinds: list[str] = []
+
+        def submit(self, kind, spec):  # type: ignore[no-untyped-def]
+            self.kinds.append(kind)
+            return len(self.kinds) - 1
+
+    recorder = Recorder()
+    monkeypatch.setattr(monitors, "shared_painter", lambda: recorder)
+    cfg = Config.load(rig_config(tmp_path))
+    _, validation, *_ = load_data(cfg)
+    scores = monitors.ValidationScores(cfg, list(validation))
+    model = ArmModel(OddTanhFriction(3), inertia=0.03, viscous=0.01, c_m=16.0)
+    scores.update(model)
+    history = [{"index": 1, "parameters": {"inertia": 0.03}}]
+    drawing = monitors.KeptFigures(cfg, validation, 5.0)
+    early = RunEnd(model, {"best_pass": 1}, 1, None, scores.latest, history)
+    drawing.early(early)
+    assert recorder.kinds == ["response", "residuals", "trajectory"]
+    P = torch.eye(model.num_parameters, dtype=torch.float64) * 1e-6
+    end = dataclasses.replace(early, metrics={"best_pass": 1, "inertia": 0.03}, covariance=P)
+    figures = drawing.kept(end)
+    assert recorder.kinds[3:] == ["friction"]  # nothing else drawn again
+    assert sorted(figures) == ["friction_curve", "residuals/validation", "validation/validation"]
+    assert drawing._trajectory == 2  # the painter's trajectory, not one drawn here
+
+    polished = ArmModel(OddTanhFriction(3), inertia=0.031, viscous=0.01, c_m=16.0)
+    scores.update(polished)
+    drawing.early(early)
+    moved = dataclasses.replace(end, model=polished, scores=scores.latest)
+    del recorder.kinds[:]
+    monkeypatch.setattr(monitors, "render", lambda kind, spec: b"drawn here")
+    drawing.kept(moved)
+    assert sorted(recorder.kinds) == ["friction", "residuals", "response"]
+    assert drawing.trajectory() == b"drawn here"

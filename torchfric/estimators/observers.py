@@ -93,6 +93,11 @@ class Callback:
     def on_run_start(self, start: RunStart) -> None:
         """Before the estimator's first pass or epoch (also when the run resumes)."""
 
+    def on_estimate(self, end: RunEnd) -> None:
+        """After the estimator, before the run's σ: the kept model, its history and step, the
+        metrics known so far (``best_pass``) and its scores when the passes made them; the
+        model may still change (a polish the run keeps) before `on_run_end`."""
+
     def on_run_end(self, end: RunEnd) -> None:
         """After the run's result is written: the kept model, its metrics and scores."""
 
@@ -130,6 +135,9 @@ class CallbackList(Callback):
 
     def on_run_start(self, start: RunStart) -> None:
         self._all("on_run_start", start)
+
+    def on_estimate(self, end: RunEnd) -> None:
+        self._all("on_estimate", end)
 
     def on_run_end(self, end: RunEnd) -> None:
         self._all("on_run_end", end)

@@ -16,7 +16,8 @@ from ...lazy import lazy_names
 
 _LAZY: dict[str, str] = {
     **dict.fromkeys(
-        ["build_checkpoint", "checkpoint_config", "checkpoint_model", "load_checkpoint",
+        ["build_checkpoint", "check_checkpoint_target", "checkpoint_config", "checkpoint_model",
+         "load_checkpoint",
          "read_checkpoint", "save_checkpoint", "sha256_file"],
         "checkpoint",
     ),

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from ..config import Config
 
 __all__ = [
+    "check_checkpoint_target",
     "FORMAT",
     "FORMAT_VERSION",
     "build_checkpoint",
@@ -385,3 +386,17 @@ def _migrate_config(stored: Mapping[str, Any]) -> dict[str, Any]:
         for key in ENSEMBLE_KEYS:
             est.pop(key, None)
     return out
+
+
+def check_checkpoint_target(path: pathlib.Path) -> None:
+    """``--checkpoint PATH`` may replace only an earlier torchfric checkpoint, never other files."""
+    if path.is_dir():
+        raise TorchfricError(f"--checkpoint {path} is a directory; give a .pt file name")
+    if path.exists():
+        try:
+            read_checkpoint(path)
+        except TorchfricError:
+            raise TorchfricError(
+                f"--checkpoint {path} exists and is not a torchfric checkpoint; torchfric "
+                "replaces only its own checkpoints there: give another file name"
+            ) from None

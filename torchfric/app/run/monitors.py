@@ -22,6 +22,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TextIO
 
+import torch
+
 from ...data import Experiment
 from ...estimators.ekf import MEASUREMENTS
 from ...estimators.identify import EKFResult, PassRecord
@@ -148,15 +150,20 @@ class ValidationScores(Callback):
 
 class KeptFigures:
     """A model's figures (`draw`), drawn as PNG in the process's helper
-    (`torchfric.app.artifacts.shared_painter`, started here) while the run goes on; the kept model's
-    once per run (`kept`), with the report's parameter trajectories (`trajectory`). A drawing
-    is a mapping of tag to figure id; `pngs` collects it."""
+    (`torchfric.app.artifacts.shared_painter`, started here) while the run goes on; the kept
+    model's once per run (`kept`), with the report's parameter trajectories (`trajectory`).
+    A drawing is a mapping of tag to figure id; `pngs` collects it.
+
+    What does not wait for the run's σ is handed over when the estimator ends (`early`): the
+    kept model's responses and residuals and the trajectories, drawn while the σ are computed;
+    `kept` then only adds the friction curve with its band, unless the model changed since."""
 
     def __init__(self, cfg: Config, validation: Sequence[Experiment], v_max: float) -> None:
         self.cfg, self.validation, self.v_max = cfg, list(validation), v_max
         self._kept: tuple[RunEnd, dict[str, int]] | None = None
+        self._early: tuple[Any, ...] | None = None
         self._pngs: dict[int, bytes] = {}
-        self.trajectory: bytes | None = None  # the kept run's parameter trajectories (PNG)
+        self._trajectory: int | bytes | None = None  # figure id or PNG
         self.painter = shared_painter()
 
     def draw(
@@ -165,13 +172,16 @@ class KeptFigures:
         model: ArmModel,
         P_theta: Any,
         scores: Mapping[str, SimulationScore],
+        tags: Sequence[str] | None = None,
     ) -> dict[str, int]:
-        """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag."""
+        """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag (those
+        of `tags` only, when given)."""
         specs = model_specs(
             model, self.v_max, f"pass {step}", self.cfg.data.axis_unit, P_theta,
             self.validation, dict(scores),
         )  # fmt: skip
-        return {tag: self.painter.submit(*spec) for tag, spec in specs.items()}
+        wanted = specs if tags is None else [t for t in specs if t in tags]
+        return {t: self.painter.submit(*specs[t]) for t in wanted}
 
     def ready(self, drawing: Mapping[str, int]) -> bool:
         """Whether `pngs` of `drawing` returns without waiting."""
@@ -184,18 +194,56 @@ class KeptFigures:
                 self._pngs[fid] = self.painter.png(fid)
         return {tag: self._pngs[fid] for tag, fid in drawing.items()}
 
+    @staticmethod
+    def _best(end: RunEnd) -> Any:
+        return end.metrics.get("best_pass", end.metrics.get("best_epoch"))
+
+    def early(self, end: RunEnd) -> None:
+        """Hand over the figures of the estimator's kept model that do not need its σ: the
+        responses and residuals (when `end` has the scores of every validation record) and
+        the trajectories."""
+        scored = all(e.name in end.scores for e in self.validation)
+        tags = [f"{kind}/{e.name}" for e in self.validation for kind in ("validation", "residuals")]
+        drawing = self.draw(end.step, end.model, None, end.scores, tags) if scored else {}
+        if end.history:
+            drawing["trajectory"] = self.painter.submit(*trajectory_spec(end.history, self._best(end)))  # fmt: skip
+        theta = end.model.get_theta().detach().clone()
+        self._early = (theta, end.scores, end.step, self._best(end), len(end.history), drawing)
+
+    def _early_for(self, end: RunEnd) -> dict[str, int]:
+        """The figures `early` handed over, when they are `end`'s (the same θ, scores, step,
+        kept pass and history)."""
+        if self._early is None:
+            return {}
+        theta, scores, step, best, n, drawing = self._early
+        same = (end.scores is scores and end.step == step and self._best(end) == best
+                and len(end.history) == n and torch.equal(end.model.get_theta().detach(), theta))  # fmt: skip
+        return drawing if same else {}
+
     def kept(self, end: RunEnd) -> dict[str, int]:
-        """The kept model's figures (`draw`), handed over at the first call for `end`; then,
-        while the painter draws them, its parameters over the passes or epochs drawn here
-        (`trajectory`, for report.html): the run waits for both at once, not one after the
-        other."""
+        """The kept model's figures (`draw`), handed over at the first call for `end` (those
+        `early` handed over are reused); then, while the painter draws them, the trajectories
+        drawn here when `early` did not hand them over (`trajectory`, for report.html): the
+        run waits for both at once, not one after the other."""
         if self._kept is None or self._kept[0] is not end:
-            self._kept = (end, self.draw(end.step, end.model, end.covariance, end.scores))
-            self.trajectory = None
-            if end.history:
-                best = end.metrics.get("best_pass", end.metrics.get("best_epoch"))
-                self.trajectory = render(*trajectory_spec(end.history, best))
+            early = dict(self._early_for(end))
+            self._trajectory = early.pop("trajectory", None)
+            missing = [t for t in ("friction_curve", *[f"{k}/{e.name}" for e in self.validation
+                       for k in ("validation", "residuals")]) if t not in early]  # fmt: skip
+            drawing = {
+                **early,
+                **self.draw(end.step, end.model, end.covariance, end.scores, missing),
+            }
+            self._kept = (end, drawing)
+            if self._trajectory is None and end.history:
+                self._trajectory = render(*trajectory_spec(end.history, self._best(end)))
         return self._kept[1]
+
+    def trajectory(self) -> bytes | None:
+        """The kept run's parameter trajectories as PNG (after `kept`), None without history."""
+        if isinstance(self._trajectory, int):
+            self._trajectory = self.painter.png(self._trajectory)
+        return self._trajectory
 
 
 class ProgressLines(Callback):

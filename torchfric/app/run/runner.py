@@ -2,10 +2,10 @@
 
 The library core (`identify_ekf`, `prefit`, …) does no I/O; this module hands the estimator
 the run's observers (`torchfric.app.run.views.run_observers`) as one `CallbackList`, calls
-their run hooks (`on_run_start`, `on_run_end`, `on_exception`: TensorBoard, progress bars,
-snapshots and report.html finish there) and writes the final checkpoint and metrics. Loading the data and building the
-initial model are in `torchfric.app.run.inputs`; scoring the result in `torchfric.app.run.assessment`.
-"""
+their run hooks (`on_run_start`, `on_estimate`, `on_run_end`, `on_exception`: TensorBoard,
+progress bars, snapshots and report.html finish there) and writes the final checkpoint and
+metrics. Loading the data and building the initial model are in `torchfric.app.run.inputs`;
+scoring the result in `torchfric.app.run.assessment`."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ import torch
 
 from ...data import Experiment
 from ...environment import torch_settings
-from ...errors import RunInterrupted, TorchfricError
+from ...errors import RunInterrupted
 from ...estimators.ensemble import identify_ekf_ensemble
 from ...estimators.identify import EKFResult, PassRecord, identify_ekf
 from ...estimators.metrics import SimulationScore
@@ -31,6 +31,7 @@ from ...models.arm import ArmModel
 from ..artifacts import (
     RunDir,
     build_checkpoint,
+    check_checkpoint_target,
     claim_run_dir,
     locked,
     read_checkpoint,
@@ -107,13 +108,19 @@ def _kept(
     cfg: Config, result: EKFResult, obs: _Watch, seconds: float, more: dict[str, Any]
 ) -> _Outcome:
     """The pass a filter's (or the kept member's) `result` keeps (`kept_pass`), its estimator
-    state, and the run's extra metrics (`more` and the filter's samples per second)."""
+    state, and the run's extra metrics (`more` and the filter's samples per second); the
+    observers see it (`on_estimate`) before the run's σ are computed."""
     kept, extra = kept_pass(
         result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
     )
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
     extra.update(more)
-    return kept.model, kept_payload(kept, extra), extra
+    state, best = kept_payload(kept, extra), extra.get("best_pass")
+    scores, history = obs.scores.scores_at(best) or {}, state.get("history", ())
+    obs.callbacks.on_estimate(
+        RunEnd(kept.model, {"best_pass": best}, best or 0, None, scores, history)
+    )
+    return kept.model, state, extra
 
 
 def _on_cpu(obs: _Watch, what: str) -> None:
@@ -213,20 +220,6 @@ def _default_say(msg: str) -> None:
     sys.stderr.flush()
 
 
-def _check_checkpoint_target(path: pathlib.Path) -> None:
-    """``--checkpoint PATH`` may replace only an earlier torchfric checkpoint, never other files."""
-    if path.is_dir():
-        raise TorchfricError(f"--checkpoint {path} is a directory; give a .pt file name")
-    if path.exists():
-        try:
-            read_checkpoint(path)
-        except TorchfricError:
-            raise TorchfricError(
-                f"--checkpoint {path} exists and is not a torchfric checkpoint; torchfric "
-                "replaces only its own checkpoints there: give another file name"
-            ) from None
-
-
 @torch_settings()  # float64, TORCHFRIC_THREADS threads: the arithmetic of the CLI and `fit`
 def train(
     cfg: Config,
@@ -260,7 +253,7 @@ def train(
     saved = resume_state(explicit or default, cfg) if resume else None
     if checkpoint is not None:
         checkpoint = pathlib.Path(checkpoint)
-        _check_checkpoint_target(checkpoint)
+        check_checkpoint_target(checkpoint)
     run = _Run(cfg, say, time.perf_counter(), saved, bars, on)
     run.prepare()
     claim = claim_run_dir(default, explicit=explicit, overwrite=overwrite, resume=resume)

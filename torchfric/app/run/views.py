@@ -30,10 +30,13 @@ class ReportPage(Callback):
     def __init__(self, cfg: Config, run_dir: pathlib.Path, drawing: KeptFigures) -> None:
         self.cfg, self.run_dir, self.drawing = cfg, run_dir, drawing
 
+    def on_estimate(self, end: RunEnd) -> None:
+        self.drawing.early(end)
+
     def on_run_end(self, end: RunEnd) -> None:
         images = self.drawing.pngs(self.drawing.kept(end))
-        if self.drawing.trajectory is not None:
-            images["trajectory"] = self.drawing.trajectory
+        if (trajectory := self.drawing.trajectory()) is not None:
+            images["trajectory"] = trajectory
         write_report(
             self.run_dir / "report.html", title=self.cfg.name, model=end.model,
             metrics=dict(end.metrics), history=list(end.history),
