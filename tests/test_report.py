@@ -330,8 +330,7 @@ def test_the_kept_figures_handed_over_early_are_not_drawn_again(tmp_path, monkey
     import dataclasses
 
     from torchfric.app.config import Config
-    from torchfric.app.run import load_data
-    from torchfric.app.run import monitors
+    from torchfric.app.run import load_data, monitors
     from torchfric.estimators.observers import RunEnd
 
     class Recorder:
