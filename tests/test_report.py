@@ -369,3 +369,19 @@ def test_the_kept_figures_handed_over_early_are_not_drawn_again(tmp_path, monkey
     drawing.kept(moved)
     assert sorted(recorder.kinds) == ["friction", "residuals", "response"]
     assert drawing.trajectory() == b"drawn here"
+
+
+@pytest.mark.parametrize("value", ["yes", "2", " 0"])
+def test_an_invalid_painter_switch_is_a_one_line_error(value, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from torchfric.environment import check_environment
+    from torchfric.errors import TorchfricError
+
+    with pytest.raises(TorchfricError) as info:
+        check_environment({"TORCHFRIC_PAINTER": value})
+    message = str(info.value)
+    assert (
+        "\n" not in message
+        and "TORCHFRIC_PAINTER=1" in message
+        and "TORCHFRIC_PAINTER=0" in message
+    )
+    assert check_environment({"TORCHFRIC_PAINTER": "0"})["TORCHFRIC_PAINTER"] is False

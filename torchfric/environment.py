@@ -7,6 +7,7 @@ TORCHFRIC_THREADS          torch's intra-op threads of a run (an integer >= 1)  
 TORCHFRIC_NATIVE           1: run the filter as generated C; 0: the torch paths        1
 TORCHFRIC_NATIVE_THREADS   threads that share an ensemble's members (integer >= 1)     cores
 TORCHFRIC_CACHE            folder of the compiled-code cache (created private, 0700)   ~/.cache/torchfric
+TORCHFRIC_PAINTER          1: a run's figures drawn by a helper process; 0: in the run  1
 =========================  ==========================================================  =======
 
 A value that does not parse is a one-line `TorchfricError` naming the variable, the value (cut
@@ -25,13 +26,14 @@ from typing import Any
 
 from .errors import TorchfricError, shorten
 
-__all__ = ["KNOWN", "check_environment", "native_enabled", "torch_settings"]
+__all__ = ["KNOWN", "check_environment", "native_enabled", "painter_enabled", "torch_settings"]
 
 KNOWN: tuple[str, ...] = (
     "TORCHFRIC_THREADS",
     "TORCHFRIC_NATIVE",
     "TORCHFRIC_NATIVE_THREADS",
     "TORCHFRIC_CACHE",
+    "TORCHFRIC_PAINTER",
 )
 
 
@@ -44,6 +46,19 @@ def native_enabled(text: str | None) -> bool:
     raise TorchfricError(
         f"TORCHFRIC_NATIVE={shorten(text)!r} is not a valid value: use TORCHFRIC_NATIVE=1 "
         "(generated C, the default) or TORCHFRIC_NATIVE=0 (the Inductor/eager path), or unset it"
+    )
+
+
+def painter_enabled(text: str | None) -> bool:
+    """``TORCHFRIC_PAINTER``: "1", empty or unset → True; "0" → False; else a one-line error."""
+    if text is None or text in ("", "1"):
+        return True
+    if text == "0":
+        return False
+    raise TorchfricError(
+        f"TORCHFRIC_PAINTER={shorten(text)!r} is not a valid value: use TORCHFRIC_PAINTER=1 (a "
+        "run's figures drawn by a helper process, the default) or TORCHFRIC_PAINTER=0 (in the "
+        "run's own process), or unset it"
     )
 
 
@@ -68,6 +83,7 @@ def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
         "TORCHFRIC_NATIVE": True,
         "TORCHFRIC_NATIVE_THREADS": None,
         "TORCHFRIC_CACHE": None,
+        "TORCHFRIC_PAINTER": True,
     }
     for name, text in env.items():
         if not name.startswith("TORCHFRIC_"):
@@ -76,6 +92,8 @@ def check_environment(env: Mapping[str, str] | None = None) -> dict[str, Any]:
             out[name] = _positive_int(name, text)
         elif name == "TORCHFRIC_NATIVE":
             out[name] = native_enabled(text)
+        elif name == "TORCHFRIC_PAINTER":
+            out[name] = painter_enabled(text)
         elif name == "TORCHFRIC_CACHE":
             if not text.strip() or "\0" in text:
                 raise TorchfricError(

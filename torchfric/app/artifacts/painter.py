@@ -30,6 +30,7 @@ import threading
 from collections.abc import Mapping
 from typing import Any
 
+from ...environment import painter_enabled
 from . import drawing
 from .drawing import ANSWER, HEAD, read_exact, render
 
@@ -38,7 +39,7 @@ __all__ = ["Painter", "painting", "shared_painter"]
 
 def painting() -> bool:
     """Whether figures go to the helper process (``$TORCHFRIC_PAINTER``, default on)."""
-    return os.environ.get("TORCHFRIC_PAINTER", "1") != "0"
+    return painter_enabled(os.environ.get("TORCHFRIC_PAINTER"))
 
 
 # The helper: Python in isolated mode (no current folder, no PYTHONPATH, no user site on its
