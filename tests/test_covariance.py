@@ -214,6 +214,26 @@ def test_innovations_and_loglik_equal_the_independent_filter(tanh2: Exact) -> No
     assert c.pem.samples == c.exp.n
 
 
+def test_a_trial_steps_filter_is_the_covariance_base_bit_for_bit(tanh2: Exact) -> None:
+    """`pem_refine` takes a trial step's innovations, filtered in a batch of trials, as the
+    base of the covariance at that step (it does not filter them again): they are the numbers
+    of that θ's own filter, so the covariance is the same to the last bit."""
+    from torchfric.estimators.covariance import _loglik
+
+    c = tanh2
+    trials = c.theta + torch.tensor([[0.01, -0.02, 0.0, 0.001, 0.0, 0.0], [0.0] * 6,
+                                     [0.02, 0.0, 0.001, 0.0, -0.01, 0.0]])  # fmt: skip
+    ll, none = _loglik(c.model, [c.exp], c.tuning, trials, 1.0, 1.0, None)  # above = inf
+    assert none is None and float(ll[1]) > float(ll[0])  # the middle row (θ̂) is the likeliest
+    _, first = _loglik(c.model, [c.exp], c.tuning, trials, 1.0, 1.0, None, above=float(ll[0]))
+    assert first is not None and torch.equal(first[0][0], innovations(c.model, [c.exp], c.tuning, trials[1])[0][0])  # fmt: skip
+    again = pem_covariance(c.model, [c.exp], c.tuning, trials[1])
+    reused = pem_covariance(c.model, [c.exp], c.tuning, trials[1], base=first)
+    for name in ("information", "gradient", "cov", "score_cov"):
+        assert torch.equal(getattr(again, name), getattr(reused, name)), name
+    assert again.loglik == reused.loglik
+
+
 def test_information_is_the_gauss_newton_matrix_of_the_exact_sensitivities(tanh2: Exact) -> None:
     c = tanh2
     exact, fd = c.information, c.pem.information
@@ -275,7 +295,10 @@ def test_samples_left_out_of_the_criterion_are_not_in_its_sums(tanh2: Exact) -> 
     w = keep.to(torch.float64)
     assert pem.loglik == pytest.approx(float(-0.5 * (w * c.e**2 / c.S).sum()), rel=1e-9)
     info = (c.De * (w / c.S)[:, None]).T @ c.De
-    assert float(torch.linalg.matrix_norm(pem.information - info) / torch.linalg.matrix_norm(info)) < 1e-6
+    assert (
+        float(torch.linalg.matrix_norm(pem.information - info) / torch.linalg.matrix_norm(info))
+        < 1e-6
+    )
     grad = (c.scores * w[:, None]).sum(0)
     assert float((pem.gradient - grad).norm() / grad.norm()) < 1e-6
     assert not torch.allclose(pem.cov, c.pem.cov, rtol=1e-3)  # the left-out samples mattered
@@ -675,7 +698,7 @@ def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # typ
 
     monkeypatch.setattr(covariance, "pem_covariance", lambda m, e, t, theta, **kw: at(theta))
     monkeypatch.setattr(covariance, "_loglik",
-                        lambda m, e, t, thetas, q, r, moving: torch.tensor([loglik(x) for x in thetas]))  # fmt: skip
+                        lambda m, e, t, thetas, q, r, moving, above: (torch.tensor([loglik(x) for x in thetas]), None))  # fmt: skip
     start = torch.tensor([0.0, 1.0], dtype=torch.float64)
     for bound, reaches in ((1e6, True), (20.0, False)):
         tuning = EKFTuning(theta_bound=bound)

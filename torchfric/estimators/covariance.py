@@ -114,8 +114,7 @@ def _batched_loglik(
     thetas = torch.as_tensor(thetas, dtype=torch.float64)
     K, k = thetas.shape
     Q, P0_xx, H, R = tuning.fixed_theta_matrices(k, model.state_size)
-    Qk = Q * q_scales[:, None, None]
-    Rk = R * r_scales[:, None, None]
+    Qk, Rk = Q * q_scales[:, None, None], R * r_scales[:, None, None]
     step_fn = _fixed_theta_steps(model, tuning)[1]
     data = measured_data(list(experiments), tuning.measure)
     total_n = sum(e.n for e in experiments)
@@ -266,6 +265,7 @@ def _fixed_theta_steps(model: ArmModel, tuning: EKFTuning) -> tuple[Step, Step]:
 # less than the 2 ms from which `torchfric.accel.native` splits members across the cores.
 FIXED_CHUNK = 8192
 _STEPS: dict[Any, tuple[Step, Step]] = {}  # the last model's fixed-θ steps (built once per run)
+Innovations = list[tuple[Tensor, Tensor]]  # per experiment e_t and S_t of one θ (`innovations`)
 
 
 def pem_covariance(
@@ -278,6 +278,7 @@ def pem_covariance(
     r_scale: float = 1.0,
     block: int | None = None,
     moving: Sequence[Tensor] | None = None,
+    base: Innovations | None = None,
 ) -> PEMCovariance:
     """The sandwich covariance of θ̂ = `theta` `(k,)` (module docstring).
 
@@ -297,6 +298,8 @@ def pem_covariance(
         block: samples per block of the score's long-run covariance (None: about `BLOCKS`
             blocks over all records).
         moving: per experiment, the samples in V (`innovations`); None: all.
+        base: `innovations` at θ̂ when the caller has them (a trial step `pem_refine` took):
+            not filtered again.
 
     Raises:
         TorchfricError: the fixed-θ filter fails at θ̂ or next to it.
@@ -307,7 +310,7 @@ def pem_covariance(
     h = 1e-4 * torch.maximum(theta.abs(), torch.ones_like(theta))
     run = functools.partial(innovations, model, experiments, tuning, q_scale=q_scale,
                             r_scale=r_scale, moving=moving)  # fmt: skip
-    base = run(theta)
+    base = run(theta) if base is None else base
     info, block_scores, segment, loglik, samples = score_sums(
         base, _sensitivities(run, theta, h), block
     )
@@ -360,23 +363,20 @@ def _sensitivities(run: Any, theta: Tensor, h: Tensor) -> list[Tensor]:
 _GROUP = 4  # parameters whose ± filters run in one batch: 8 filters, two SIMD vectors
 
 
-def _loglik(
-    model: ArmModel,
-    experiments: Sequence[Experiment],
-    tuning: EKFTuning,
-    thetas: Tensor,
-    q_scale: float,
-    r_scale: float,
-    moving: Sequence[Tensor] | None,
-) -> Tensor:
-    """ℓ = −½ V at each row of `thetas` `(K, k)`, `2 _GROUP` filters a batch; −inf on failure."""
-    out = []
+def _loglik(model: ArmModel, experiments: Sequence[Experiment], tuning: EKFTuning, thetas: Tensor, q_scale: float, r_scale: float, moving: Sequence[Tensor] | None, above: float = math.inf) -> tuple[Tensor, Innovations | None]:  # fmt: skip
+    """ℓ = −½ V at each row of `thetas` `(K, k)`, `2 _GROUP` filters a batch, −inf on failure;
+    and the innovations of the first row whose ℓ exceeds `above` (the numbers `innovations`
+    gives for that row alone), or None."""
+    out, first = [], None
     for part in torch.split(thetas, 2 * _GROUP):
         parts = innovations(model, experiments, tuning, part, q_scale=q_scale, r_scale=r_scale,
                             lenient=True, moving=moving)  # fmt: skip
         ll = sum(-0.5 * (e * e / S).sum(0) for e, S in parts)
-        out.append(torch.where(torch.isfinite(ll), ll, -math.inf))
-    return torch.cat(out)
+        out.append(ll := torch.where(torch.isfinite(ll), ll, -math.inf))
+        if first is None and bool((ll > above).any()):
+            j = int(torch.nonzero(ll > above)[0])
+            first = [(e[:, j].clone(), S[:, j].clone()) for e, S in parts]
+    return torch.cat(out), first
 
 
 NOISE_GRID_R = tuple(10.0**p for p in range(-8, 1))
@@ -479,14 +479,15 @@ def pem_refine(
     for _ in range(iterations):
         if 0.5 * float(cov.gradient @ cov.newton) < min_gain:
             break
-        trial = None
+        trial, base = None, None
         halved = [fraction * cov.newton for fraction in (1.0, 0.5, 0.25, 0.125, 0.0625)]
         for steps in (halved, _damped_steps(cov)):  # each list's trials in one batch, in order
             trials = theta + torch.stack(steps)
             trials = trials[(trials.abs() < 0.5 * tuning.theta_bound).all(1)]
             if not trials.shape[0]:
                 continue
-            ll = _loglik(model, experiments, tuning, trials, q_scale, r_scale, moving)
+            ll, base = _loglik(model, experiments, tuning, trials, q_scale, r_scale, moving,
+                               above=cov.loglik)  # fmt: skip
             raised = torch.nonzero(ll > cov.loglik).flatten()
             if raised.numel():
                 trial = trials[int(raised[0])]
@@ -494,6 +495,6 @@ def pem_refine(
         if trial is None:
             break
         theta = trial
-        cov = at(theta)
+        cov = at(theta, base=base)  # the trial's own filter, not run again
         trace.append(cov.loglik)
     return theta, cov, trace
