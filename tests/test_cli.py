@@ -552,3 +552,26 @@ def test_a_direct_train_call_computes_as_the_cli(tmp_path: pathlib.Path) -> None
     finally:
         torch.set_num_threads(threads)
         torch.set_default_dtype(dtype)
+
+
+@pytest.mark.parametrize("ok", [True, False])
+def test_the_program_exits_with_mains_status_after_its_exit_handlers(tmp_path, ok) -> None:  # type: ignore[no-untyped-def]
+    """`torchfric` (`cli.run`) leaves without the interpreter's teardown, but only after its
+    output is flushed into a pipe and every exit handler has run, with `main`'s status."""
+    from rig_configs import rig_config
+
+    marker = tmp_path / "handler.txt"
+    args = ["check", str(rig_config(tmp_path))] if ok else ["init", str(tmp_path / "none.csv"), "--c-m", "1"]  # fmt: skip
+    code = (
+        "import atexit, sys\n"
+        f"atexit.register(lambda: open({str(marker)!r}, 'w').write('ran'))\n"
+        f"sys.argv = ['torchfric', *{args!r}]\n"
+        "from torchfric.app.cli import run\n"
+        "run()\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert marker.read_text() == "ran"
+    if ok:
+        assert done.returncode == 0 and "samples" in done.stdout + done.stderr, done.stderr
+    else:
+        assert done.returncode == 2 and done.stderr.rstrip().splitlines()[-1].startswith("error:")

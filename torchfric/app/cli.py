@@ -7,10 +7,12 @@ User errors (bad config, data, checkpoints, a diverging filter) print one line
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
 import sys
 import warnings
 from collections.abc import Callable, Sequence
+from typing import NoReturn
 
 # Nothing here imports torch at module level: `--help`, `--version` and argument errors answer
 # without it (a third of a second instead of two); each command imports what it needs.
@@ -363,10 +365,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 141
 
 
+def run() -> NoReturn:
+    """The ``torchfric`` program: `main` on the command line's arguments, then the exit without
+    the interpreter's teardown. Once a command has returned, every file it wrote is closed;
+    what is left is tearing down torch and every module one by one (0.5–1 s of a 5-s quick
+    start, measured). Its output is flushed and every exit handler runs (`atexit`: the private
+    build folder's removal, the painter's end, logging's flush) before `os._exit` with
+    `main`'s status. An error escaping `main` takes Python's usual way out."""
+    code = main()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (BrokenPipeError, ValueError, OSError):  # the reader left, or a closed stream
+            pass
+    atexit._run_exitfuncs()
+    os._exit(code)
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None):  # type: ignore[no-untyped-def]
     """Library warnings (a slow fallback, a refused cache) as one line, without source lines."""
     sys.stderr.write(f"warning: {message}\n")
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    run()
