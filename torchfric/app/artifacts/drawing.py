@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import pickle
 import struct
 import sys
@@ -345,7 +346,8 @@ _WARM_UP: dict[str, Any] = {
 
 
 def serve() -> None:
-    """The helper's loop: `render` each request from stdin to stdout until stdin closes."""
+    """The helper's loop: `render` each request from stdin to stdout until stdin closes, then
+    leave at once (`os._exit`)."""
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     render("friction", _WARM_UP)  # matplotlib's import and its fonts, before the first request
     while (head := read_exact(stdin, HEAD.size)) is not None:
@@ -359,3 +361,4 @@ def serve() -> None:
             data, status = f"{type(err).__name__}: {err}".encode(), 1
         stdout.write(ANSWER.pack(fid, status, len(data)) + data)
         stdout.flush()
+    os._exit(0)  # every answer is written: no teardown of matplotlib to wait for

@@ -78,7 +78,10 @@ class Painter:
             self._broken = True
             return
         threading.Thread(target=self._write, daemon=True, name="torchfric-painter-in").start()
-        threading.Thread(target=self._read, daemon=True, name="torchfric-painter-out").start()
+        self._reader = threading.Thread(
+            target=self._read, daemon=True, name="torchfric-painter-out"
+        )
+        self._reader.start()
 
     def _write(self) -> None:
         """Requests to the helper's stdin, on a thread: a full pipe never blocks the run."""
@@ -111,6 +114,7 @@ class Painter:
         self._broken = True
         for event in list(self._arrived.values()):
             event.set()
+        stdout.close()  # the helper has ended
 
     def submit(self, kind: str, spec: Mapping[str, Any]) -> int:
         """Queue the figure `spec` of `kind`; its id for `png`. Returns at once."""
@@ -145,10 +149,10 @@ class Painter:
         if proc is None:
             return
         self._outbox.put(None)
-        _ENDING.append(proc)
+        _ENDING.append((proc, self._reader))
 
 
-_ENDING: list[subprocess.Popen[bytes]] = []  # helpers told to end, waited for at exit
+_ENDING: list[tuple[subprocess.Popen[bytes], threading.Thread]] = []  # told to end
 _SHARED: Painter | None = None
 
 
@@ -167,10 +171,13 @@ def shared_painter() -> Painter:
 
 @atexit.register
 def _reap() -> None:
+    """At exit: tell the helpers to end and wait for them (a helper ends within milliseconds
+    of its input closing: it leaves without the interpreter's teardown)."""
     if _SHARED is not None and _SHARED._pid == os.getpid():
         _SHARED.close()
-    for proc in _ENDING:
+    for proc, reader in _ENDING:
         try:
             proc.wait(timeout=5)
         except subprocess.TimeoutExpired:
             proc.kill()
+        reader.join(timeout=1)
