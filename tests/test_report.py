@@ -308,6 +308,11 @@ def test_a_painter_that_cannot_draw_falls_back_to_this_process(monkeypatch) -> N
     dead.close()
     monkeypatch.undo()
 
+    monkeypatch.setattr(painter_module.sys, "executable", "")  # embedded: no Python to start
+    embedded = painter_module.Painter()
+    assert embedded.png(embedded.submit(*spec)) == render(*spec) and embedded._proc is None
+    monkeypatch.undo()
+
     monkeypatch.setenv("TORCHFRIC_PAINTER", "0")
     off = painter_module.Painter()
     fid = off.submit(*spec)

@@ -69,12 +69,15 @@ class Painter:
         switched off, or when it cannot start (every figure is then drawn here)."""
         if self._proc is not None or self._broken:
             return
+        if not sys.executable:  # an embedded interpreter: no Python to start
+            self._broken = True
+            return
         try:
             self._proc = subprocess.Popen(
                 [sys.executable, "-I", "-c", _HELPER.format(path=str(drawing.__file__))],
                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
             )  # fmt: skip
-        except OSError:
+        except (OSError, ValueError):
             self._broken = True
             return
         threading.Thread(target=self._write, daemon=True, name="torchfric-painter-in").start()
