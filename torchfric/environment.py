@@ -37,29 +37,28 @@ KNOWN: tuple[str, ...] = (
 )
 
 
-def native_enabled(text: str | None) -> bool:
-    """``TORCHFRIC_NATIVE``: "1", empty or unset → True; "0" → False; else a one-line error."""
+def _switch(name: str, text: str | None, on: str, off: str) -> bool:
+    """A 0/1 setting: "1", empty or unset → True; "0" → False; else a one-line error that says
+    what each means (`on`, `off`)."""
     if text is None or text in ("", "1"):
         return True
     if text == "0":
         return False
     raise TorchfricError(
-        f"TORCHFRIC_NATIVE={shorten(text)!r} is not a valid value: use TORCHFRIC_NATIVE=1 "
-        "(generated C, the default) or TORCHFRIC_NATIVE=0 (the Inductor/eager path), or unset it"
+        f"{name}={shorten(text)!r} is not a valid value: use {name}=1 ({on}, the default) or "
+        f"{name}=0 ({off}), or unset it"
     )
+
+
+def native_enabled(text: str | None) -> bool:
+    """``TORCHFRIC_NATIVE``: "1", empty or unset → True; "0" → False; else a one-line error."""
+    return _switch("TORCHFRIC_NATIVE", text, "generated C", "the Inductor/eager path")
 
 
 def painter_enabled(text: str | None) -> bool:
     """``TORCHFRIC_PAINTER``: "1", empty or unset → True; "0" → False; else a one-line error."""
-    if text is None or text in ("", "1"):
-        return True
-    if text == "0":
-        return False
-    raise TorchfricError(
-        f"TORCHFRIC_PAINTER={shorten(text)!r} is not a valid value: use TORCHFRIC_PAINTER=1 (a "
-        "run's figures drawn by a helper process, the default) or TORCHFRIC_PAINTER=0 (in the "
-        "run's own process), or unset it"
-    )
+    return _switch("TORCHFRIC_PAINTER", text, "a run's figures drawn by a helper process",
+                   "in the run's own process")  # fmt: skip
 
 
 def _positive_int(name: str, text: str) -> int:

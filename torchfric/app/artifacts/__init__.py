@@ -23,7 +23,7 @@ _LAZY: dict[str, str] = {
     ),
     **dict.fromkeys(["RunDir", "claim_run_dir", "locked", "next_run_dir"], "rundir"),
     **dict.fromkeys(
-        ["friction_figure", "friction_spec", "model_figures", "model_specs", "trajectory_spec"],
+        ["friction_figure", "friction_spec", "model_specs", "trajectory_spec"],
         "figures",
     ),
     **dict.fromkeys(["pixels", "png_bytes", "png_from_pixels", "render", "subplots"], "drawing"),

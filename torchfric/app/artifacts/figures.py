@@ -44,7 +44,6 @@ __all__ = [
     "response_figure",
     "residual_figure",
     "trajectory_figure",
-    "model_figures",
     "autocorrelation",
     "envelope",
     "whiteness_bound",
@@ -165,17 +164,3 @@ def response_figure(exp: Experiment, score: SimulationScore, unit: str = "rad") 
 def residual_figure(exp: Experiment, score: SimulationScore, unit: str = "rad") -> Any:
     """`residual_spec`'s figure."""
     return draw(*residual_spec(exp, score, unit))
-
-
-def model_figures(
-    model: ArmModel,
-    v_max: float,
-    title: str,
-    unit: str,
-    P_theta: Tensor | None,
-    validation: Sequence[Experiment],
-    scores: Mapping[str, SimulationScore],
-) -> dict[str, Any]:
-    """`model_specs`' figures, by tag."""
-    specs = model_specs(model, v_max, title, unit, P_theta, validation, scores)
-    return {tag: draw(*spec) for tag, spec in specs.items()}

@@ -63,6 +63,7 @@ class Painter:
         self._ids = itertools.count()
         self._broken = not painting()
         self._pid = os.getpid()  # a forked child's copy has no threads: it starts its own
+        self._reader: threading.Thread | None = None  # reads the helper's answers
 
     def start(self) -> None:
         """Start the helper (it imports matplotlib while the run goes on); no-op when started,
@@ -152,6 +153,7 @@ class Painter:
         if proc is None:
             return
         self._outbox.put(None)
+        assert self._reader is not None
         _ENDING.append((proc, self._reader))
 
 

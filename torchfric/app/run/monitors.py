@@ -19,7 +19,7 @@ from __future__ import annotations
 import os
 import shutil
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any, TextIO
 
 import torch
@@ -172,16 +172,15 @@ class KeptFigures:
         model: ArmModel,
         P_theta: Any,
         scores: Mapping[str, SimulationScore],
-        tags: Sequence[str] | None = None,
+        skip: Collection[str] = (),
     ) -> dict[str, int]:
-        """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag (those
-        of `tags` only, when given)."""
+        """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag (but
+        those of `skip`)."""
         specs = model_specs(
             model, self.v_max, f"pass {step}", self.cfg.data.axis_unit, P_theta,
             self.validation, dict(scores),
         )  # fmt: skip
-        wanted = specs if tags is None else [t for t in specs if t in tags]
-        return {t: self.painter.submit(*specs[t]) for t in wanted}
+        return {t: self.painter.submit(*spec) for t, spec in specs.items() if t not in skip}
 
     def ready(self, drawing: Mapping[str, int]) -> bool:
         """Whether `pngs` of `drawing` returns without waiting."""
@@ -203,8 +202,7 @@ class KeptFigures:
         responses and residuals (when `end` has the scores of every validation record) and
         the trajectories."""
         scored = all(e.name in end.scores for e in self.validation)
-        tags = [f"{kind}/{e.name}" for e in self.validation for kind in ("validation", "residuals")]
-        drawing = self.draw(end.step, end.model, None, end.scores, tags) if scored else {}
+        drawing = self.draw(end.step, end.model, None, end.scores, {"friction_curve"}) if scored else {}  # fmt: skip
         if end.history:
             drawing["trajectory"] = self.painter.submit(*trajectory_spec(end.history, self._best(end)))  # fmt: skip
         theta = end.model.get_theta().detach().clone()
@@ -228,12 +226,7 @@ class KeptFigures:
         if self._kept is None or self._kept[0] is not end:
             early = dict(self._early_for(end))
             self._trajectory = early.pop("trajectory", None)
-            missing = [t for t in ("friction_curve", *[f"{k}/{e.name}" for e in self.validation
-                       for k in ("validation", "residuals")]) if t not in early]  # fmt: skip
-            drawing = {
-                **early,
-                **self.draw(end.step, end.model, end.covariance, end.scores, missing),
-            }
+            drawing = {**early, **self.draw(end.step, end.model, end.covariance, end.scores, early)}
             self._kept = (end, drawing)
             if self._trajectory is None and end.history:
                 self._trajectory = render(*trajectory_spec(end.history, self._best(end)))
