@@ -21,6 +21,8 @@ from torch import Tensor
 
 from .aten import _arr_dtype, _evaluate
 from .scalar import _C_TYPE, _MATH, NativeUnavailable, Scalar, _dtype, _Graph, _promote, _Sym, _to
+from .tanh import SCALAR as _TANH
+from .tanh import vector as _vector_tanh
 
 # Nothing public: `_source` serves the package's `make_native_chunk`.
 __all__: list[str] = []
@@ -183,7 +185,7 @@ def _needed(graph: _Graph, outputs: list[tuple[Any, Scalar, str]]) -> list[int]:
     return sorted(need)
 
 
-_HEADER = ["#include <math.h>", "#include <stdint.h>", ""]
+_HEADER = ["#include <math.h>", "#include <stdint.h>", "#include <string.h>", ""]
 _SIGNATURE = "void torchfric_chunk(int64_t m0, int64_t m1, int64_t K, int64_t C, void **p) {"
 _COMPARE = ("<", "<=", ">", ">=", "==", "!=")
 # The CUDA form (NVRTC has no C library headers: its maths functions are built in): the same
@@ -206,8 +208,9 @@ _CUDA_MEMBER_LOOP = (
 )
 
 
-def _scalar_expr(graph: _Graph, i: int) -> str:
-    """C expression of node `i` in scalar code (``v<id>`` names the other nodes)."""
+def _scalar_expr(graph: _Graph, i: int, own_tanh: bool = False) -> str:
+    """C expression of node `i` in scalar code (``v<id>`` names the other nodes); `own_tanh`
+    calls `torchfric.accel.native.tanh`'s ``tf_tanh`` instead of the C library's."""
     op, args, dt = graph.nodes[i]
 
     def ref(a: Scalar, dtype: str) -> str:
@@ -240,7 +243,7 @@ def _scalar_expr(graph: _Graph, i: int) -> str:
     if op == "pow":
         return f"pow({ref(args[0], 'd')}, {ref(args[1], 'd')})"
     if op in _MATH:
-        return f"{op}({ref(args[0], 'd')})"
+        return f"{'tf_tanh' if own_tanh and op == 'tanh' else op}({ref(args[0], 'd')})"
     raise NativeUnavailable(f"no C form for {op}")  # pragma: no cover - every op has a case
 
 
@@ -249,7 +252,7 @@ def _scalar_program(
 ) -> str:
     """One member at a time: the step as scalar statements inside the loop over samples (with
     `cuda`, a kernel: one member per thread)."""
-    head = [*_CUDA_HEADER, _CUDA_SIGNATURE] if cuda else [*_HEADER, _SIGNATURE]
+    head = [*_CUDA_HEADER, _CUDA_SIGNATURE] if cuda else [*_HEADER, _TANH, _SIGNATURE]
     lines = [*head, *io.pointers(), _CUDA_MEMBER_LOOP if cuda else _MEMBER_LOOP]
     for i, ((_, ctype), size) in enumerate(io.carry):
         lines += [
@@ -264,7 +267,9 @@ def _scalar_program(
     for i, ((_, ctype), size) in enumerate(io.xs):
         lines.append(f"      const {ctype} *x{i} = xs{i}_base + t * {size};")
     for i in order:
-        lines.append(f"      const {_C_TYPE[graph.nodes[i][2]]} v{i} = {_scalar_expr(graph, i)};")
+        lines.append(
+            f"      const {_C_TYPE[graph.nodes[i][2]]} v{i} = {_scalar_expr(graph, i, not cuda)};"
+        )
     for (name, j), value, dt in outputs:
         size = io.outs[int(name[1:])][1] if name[0] == "o" else 0
         target = f"{name}[t * K * {size} + {j}]" if name[0] == "o" else f"{name}[{j}]"
@@ -295,7 +300,8 @@ def _vector_prelude(w: int) -> list[str]:
         "static inline vi d2i(vd a) { return __builtin_convertvector(a, vi); }",
         f"static inline vd v_pow(vd a, vd b) {{ vd r; for (int l = 0; l < {w}; ++l) r[l] = pow(a[l], b[l]); return r; }}",
     ]  # fmt: skip
-    for f in _MATH:
+    lines.append(_vector_tanh(w))
+    for f in (f for f in _MATH if f != "tanh"):
         lines.append(f"static inline vd v_{f}(vd a) {{ vd r; for (int l = 0; l < {w}; ++l) "
                      f"r[l] = {f}(a[l]); return r; }}")  # fmt: skip
     return lines
