@@ -82,7 +82,10 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
             P0 = torch.zeros(nx + k, nx + k, dtype=f64)
             P0[nx:, nx:] = torch.eye(k, dtype=f64)
             step = make_step(make_propagator(model, 1), compile=True)
-            secs, (st, _) = _best(lambda: run_pass(EKFState(x0, P0), u, y, dt, Q, H, R, step), repeat)
+            start = EKFState(x0, P0)
+            secs, (st, _) = _best(
+                lambda s=start, Q=Q, H=H, R=R, f=step: run_pass(s, u, y, dt, Q, H, R, f), repeat
+            )
             out[f"one filter, {label}"] = ((n - 1) / secs, st.x.tolist())
             masked = make_masked_step(model, 1, compile=True)
             for K in (9, 64, 256) if label == "tanh" else (9,):
@@ -92,7 +95,7 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
                 consts = (dt, Qk, H, Rk, torch.tensor(1e6, dtype=f64))
                 C, index = masked.size, torch.arange(n)
 
-                def ensemble(x=x, K=K, consts=consts, C=C, index=index):  # type: ignore[no-untyped-def]
+                def ensemble(x=x, K=K, consts=consts, C=C, index=index, P0=P0, masked=masked):  # type: ignore[no-untyped-def]
                     carry = (x, P0.expand(K, -1, -1).clone(), torch.ones(K, dtype=torch.bool),
                              torch.full((K,), -1), torch.zeros(K, 2, dtype=f64),
                              torch.zeros(K, dtype=f64), torch.zeros(K, dtype=f64))  # fmt: skip
@@ -114,7 +117,10 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
                                                              dtype=f64))  # fmt: skip
             secs, res = _best(lambda th=th: innovations(model, [exp], tuning, th), repeat)
             e, S = res[0]
-            out[f"fixed-θ filters K = {K}, tanh"] = (K * (n - 1) / secs, [float(e.sum()), float(S.sum())])
+            out[f"fixed-θ filters K = {K}, tanh"] = (
+                K * (n - 1) / secs,
+                [float(e.sum()), float(S.sum())],
+            )
     return out
 
 
@@ -162,7 +168,9 @@ def main() -> None:
         best: dict[str, dict[str, tuple[float, list[float]]]] = {name: {} for name in trees}
         for _ in range(args.rounds):
             for name, tree in trees.items():
-                for fig, (rate, numbers) in child(tree, work / f"cache-{len(name)}", args.repeat).items():
+                for fig, (rate, numbers) in child(
+                    tree, work / f"cache-{len(name)}", args.repeat
+                ).items():
                     if rate > best[name].get(fig, (0.0, []))[0]:
                         best[name][fig] = (rate, numbers)
     names = list(trees)
