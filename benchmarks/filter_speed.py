@@ -31,21 +31,11 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
+from releases import best, checkout
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _best(fn, repeat: int):  # type: ignore[no-untyped-def]
-    """(fastest seconds of `repeat` calls after a warm-up call, the last result)."""
-    result = fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), result
 
 
 def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
@@ -83,7 +73,7 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
             P0[nx:, nx:] = torch.eye(k, dtype=f64)
             step = make_step(make_propagator(model, 1), compile=True)
             start = EKFState(x0, P0)
-            secs, (st, _) = _best(
+            secs, (st, _) = best(
                 lambda s=start, Q=Q, H=H, R=R, f=step: run_pass(s, u, y, dt, Q, H, R, f), repeat
             )
             out[f"one filter, {label}"] = ((n - 1) / secs, st.x.tolist())
@@ -105,7 +95,7 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
                         carry = masked.chunk(carry, xs, valid, consts)[0]
                     return carry[0]
 
-                secs, xe = _best(ensemble, repeat)
+                secs, xe = best(ensemble, repeat)
                 steps = K * len(range(1, n - C, C)) * C
                 out[f"ensemble K = {K}, {label}"] = (steps / secs, xe[:, :4].flatten().tolist())
         model = load_checkpoint(ROOT / "checkpoints" / "arm_tanh_ekf.pt")
@@ -115,26 +105,13 @@ def measure(repeat: int) -> dict[str, tuple[float, list[float]]]:
         for K in (1, 8, 17):
             th = model.get_theta() * (1 + 1e-4 * torch.randn(K, model.num_parameters, generator=g,
                                                              dtype=f64))  # fmt: skip
-            secs, res = _best(lambda th=th: innovations(model, [exp], tuning, th), repeat)
+            secs, res = best(lambda th=th: innovations(model, [exp], tuning, th), repeat)
             e, S = res[0]
             out[f"fixed-θ filters K = {K}, tanh"] = (
                 K * (n - 1) / secs,
                 [float(e.sum()), float(S.sum())],
             )
     return out
-
-
-def checkout(ref: str, folder: Path) -> Path:
-    """The files of commit `ref` under `folder` (its torchfric importable from there)."""
-    import tarfile
-
-    archive = folder / "release.tar"
-    with archive.open("wb") as fh:
-        subprocess.run(["git", "-C", str(ROOT), "archive", ref], stdout=fh, check=True)
-    tree = folder / ref
-    with tarfile.open(archive) as tar:
-        tar.extractall(tree, filter="data")
-    return tree
 
 
 def child(tree: Path, cache: Path, repeat: int) -> dict[str, tuple[float, list[float]]]:

@@ -19,9 +19,9 @@ import argparse
 import dataclasses
 import math
 import pathlib
-import time
 
 import torch
+from releases import best
 
 from torchfric.accel import CHUNK, compile_step, iter_chunks, step_key
 from torchfric.app.artifacts import load_checkpoint
@@ -55,17 +55,6 @@ def augmented_innovations(model, experiments, tuning, thetas, step):  # type: ig
             S_t[i : i + n] = (-2.0 * ll[:n] - nis[:n] - math.log(2.0 * math.pi)).exp()
         out.append((e_t, S_t))
     return out
-
-
-def best(fn, repeat: int) -> tuple[float, object]:  # type: ignore[no-untyped-def]
-    """The fastest of `repeat` calls of `fn` after one warm-up call, and its result."""
-    result = fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        result = fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), result
 
 
 def main() -> None:

@@ -19,24 +19,14 @@ import os
 import statistics
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
 
+from releases import checkout
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "experiments" / "configs" / "arm_tanh_ekf.toml"
-
-
-def checkout(ref: str, folder: Path) -> Path:
-    """The files of commit `ref` under `folder` (its torchfric package importable from there)."""
-    archive = folder / "release.tar"
-    with archive.open("wb") as out:
-        subprocess.run(["git", "-C", str(ROOT), "archive", ref], stdout=out, check=True)
-    tree = folder / ref
-    with tarfile.open(archive) as tar:
-        tar.extractall(tree, filter="data")
-    return tree
 
 
 def timed(cmd: list[str], tree: Path | None, cwd: Path) -> float:
