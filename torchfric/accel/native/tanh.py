@@ -88,7 +88,9 @@ static inline double tf_tanh(double x) {{
 
 def vector(w: int) -> str:
     """`v_tanh(vd)`: `SCALAR`'s tanh on `w` lanes, every branch evaluated and selected per lane
-    (needs the SIMD prelude's `vd`, `vi`, `bd`, `bi`, `seld`, `seli`, `i2d`)."""
+    (needs the SIMD prelude's `vd`, `vi`, `bd`, `bi`, `seld`, `seli`, `i2d`). Two of expm1's
+    branches cannot occur inside tanh and are left out: its argument is 2|x| ≥ 2 or −2|x| > −2,
+    so a positive one is reduced by k ≥ 3, never by the k = +1 of arguments below 1.5 ln 2."""
     return f"""\
 static inline vd v_fma(vd a, vd b, vd c) {{
 #if defined(__FMA__) && defined(__AVX2__)
@@ -102,14 +104,13 @@ static inline vd v_tanh(vd x) {{
   const vi ge1 = (vi)(ix >= bi(0x3ff00000));
   const vd ax = (vd)(b & bi(0x7fffffffffffffffLL));
   const vd a = seld(ge1, bd(2.0) * ax, bd(-2.0) * ax);
-  const vi ha = ((vi)a >> 32) & bi(0x7fffffff), neg = (vi)(a < bd(0.0));
-  const vi kg = __builtin_convertvector(bd({_INV_LN2}) * a + seld(neg, bd(-0.5), bd(0.5)), vi);
+  const vi ha = ((vi)a >> 32) & bi(0x7fffffff);
+  const vi kg = __builtin_convertvector(bd({_INV_LN2}) * a + seld(ge1, bd(0.5), bd(-0.5)), vi);
   const vd tg = i2d(kg);
   const vi mid = (vi)(ha < bi(0x3ff0a2b2)), red = (vi)(ha > bi(0x3fd62e42));
-  const vd hi = seld(mid, seld(neg, a + bd({_LN2_HI}), a - bd({_LN2_HI})),
-                     v_fma(-tg, bd({_LN2_HI}), a));
-  const vd lo = seld(mid, seld(neg, bd(-{_LN2_LO}), bd({_LN2_LO})), tg * bd({_LN2_LO}));
-  const vi k = seli(red, seli(mid, seli(neg, bi(-1), bi(1)), kg), bi(0));
+  const vd hi = seld(mid, a + bd({_LN2_HI}), v_fma(-tg, bd({_LN2_HI}), a));
+  const vd lo = seld(mid, bd(-{_LN2_LO}), tg * bd({_LN2_LO}));
+  const vi k = seli(red, seli(mid, bi(-1), kg), bi(0));
   const vd rr = hi - lo, r = seld(red, rr, a), c = seld(red, (hi - rr) - lo, bd(0.0));
   const vd hfx = bd(0.5) * r, hxs = r * hfx, h2 = hxs * hxs, h4 = h2 * h2;
   const vd r1 = v_fma(h4, v_fma(hxs, bd({_Q[4]}), bd({_Q[3]})),
@@ -122,11 +123,8 @@ static inline vd v_tanh(vd x) {{
   const vd y_lt20 = (vd)((vi)((vd)((bi(0x3ff00000) - (bi(0x200000) >> (kc & bi(31)))) << 32)
                               - (e - r)) + scale);
   const vd y_ge20 = (vd)((vi)((r - (e + (vd)((bi(0x3ff) - kc) << 52))) + bd(1.0)) + scale);
-  const vd y_one = seld((vi)(r < bd(-0.25)), bd(-2.0) * (e - (r + bd(0.5))),
-                        v_fma(r - e, bd(2.0), bd(1.0)));
   vd y = seld((vi)(k < bi(20)), y_lt20, y_ge20);
   y = seld((vi)(k <= bi(-2)) | (vi)(k > bi(56)), y_big, y);
-  y = seld((vi)(k == bi(1)), y_one, y);
   y = seld((vi)(k == bi(-1)), v_fma(bd(0.5), r - e, bd(-0.5)), y);
   y = seld((vi)(k == bi(0)), r - v_fma(r, e0, -hxs), y);
   const vd q = seld(ge1, bd(2.0), -y) / (y + bd(2.0));
