@@ -493,6 +493,40 @@ def test_a_slope_pinned_at_its_floor_is_held_and_the_rest_keep_finite_sigma() ->
     assert bool(torch.isfinite(std).all()) and float(std.max()) < 0.01
 
 
+def test_a_neuron_that_is_a_step_at_every_moving_speed_is_held() -> None:
+    # W1[2] = 400 rad⁻¹ s: its tanh has risen to 0.99991 by 12.5 mrad/s. Above a stick speed of
+    # 0.02 rad/s every sample the criterion keeps sees a step; how steep it is shows only in
+    # rounding-sized, sample-by-sample changes of ℓ (the polish walked such a weight to 2·10⁵
+    # and its σ moved 3.7× with a 1e-12 change of θ). Held: no σ, no Newton step, named.
+    from torchfric.estimators.sandwich import STEEP_LIMIT, held_entries
+
+    model = ArmModel(
+        OddTanhFriction(2, w1=[1.0, 400.0], w2=[0.05, 0.1], min_slope=0.5),
+        inertia=0.03, viscous=0.01, c_m=C_M,
+    )  # fmt: skip
+    theta = model.get_theta()
+    speed = 0.02
+    floor, steep = held_entries(model, theta, speed)
+    assert not floor.any() and steep.tolist() == [False, True, False, False, False, False]
+    assert not held_entries(model, theta)[1].any()  # without a stick speed: none
+    edge = STEEP_LIMIT / float(model.to_physical(theta)[1])  # the speed at which it turns
+    assert not held_entries(model, theta, 0.999 * edge)[1].any()
+    assert held_entries(model, theta, 1.001 * edge)[1][1]
+    exp = _short_record(model, 20_000, seed=4)
+    pem = pem_covariance(model, [exp], _tuning(), theta, stick_speed=speed)
+    ident = pem.identifiability
+    assert ident.steep == ["W1[2]"] and ident.held == [] and not ident.ok
+    assert ident.to_dict()["held_steep"] == ["W1[2]"]
+    assert any(m.startswith("W1[2] makes its neuron a step") for m in ident.messages)
+    assert bool((pem.cov[1] == 0).all()) and float(pem.newton[1]) == 0.0
+    free = torch.tensor([True, False, True, True, True, True])
+    inv = torch.linalg.inv(pem.information[free][:, free])
+    torch.testing.assert_close(pem.cov[free][:, free], inv @ pem.score_cov[free][:, free] @ inv,
+                               rtol=1e-6, atol=0.0)  # fmt: skip
+    free_run = pem_covariance(model, [exp], _tuning(), theta)
+    assert free_run.identifiability.steep == [] and float(free_run.cov[1, 1]) > 0
+
+
 # =============================================================================================
 # Long-run score covariance
 # =============================================================================================
@@ -655,7 +689,7 @@ def test_damped_steps_ascend_and_shorten_towards_the_gradient() -> None:
     grad = torch.randn(5, generator=gen, dtype=torch.float64)
     names = [f"p{i}" for i in range(5)]
     cov = SimpleNamespace(information=info, gradient=grad, names=names,
-                          identifiability=SimpleNamespace(held=[]))  # fmt: skip
+                          identifiability=SimpleNamespace(held=[], steep=[]))  # fmt: skip
     steps = _damped_steps(cov)
     assert all(float(grad @ s) > 0 for s in steps)
     scale = torch.diagonal(info).sqrt()  # lengths in the parameters' own units
@@ -694,7 +728,7 @@ def test_the_polish_never_steps_to_the_search_bound(monkeypatch) -> None:  # typ
         newton = torch.linalg.solve(info, grad)
         return SimpleNamespace(theta=theta, loglik=loglik(theta), gradient=grad, newton=newton,
                                information=info, cov=torch.linalg.inv(info), names=["a", "b"],
-                               identifiability=SimpleNamespace(held=[]))  # fmt: skip
+                               identifiability=SimpleNamespace(held=[], steep=[]))  # fmt: skip
 
     monkeypatch.setattr(covariance, "pem_covariance", lambda m, e, t, theta, **kw: at(theta))
     monkeypatch.setattr(covariance, "_loglik",

@@ -255,10 +255,16 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
     torch.testing.assert_close(P, P.T)
     assert bool((torch.diagonal(P) >= offset**2).all())
     sandwich = P - torch.outer(offset, offset)
-    d = torch.sqrt(torch.diagonal(sandwich))
+    d = torch.sqrt(torch.diagonal(sandwich).clamp_min(0.0))
+    # entries held (a neuron at its floor or a step) have no σ of their own: only those
+    ident = m["identifiability"]
+    held = set(ident["held_at_bound"]) | set(ident["held_steep"])
+    names = list(m["parameters"])
+    free = torch.tensor([n not in held for n in names])
+    assert bool((d[~free] < 1e-12 * d.max()).all()) and bool((d[free] > 0).all())
     torch.testing.assert_close(
-        sandwich / torch.outer(d, d),
-        torch.tensor(m["covariance"]["correlation"], dtype=torch.float64),
+        (sandwich / torch.outer(d, d))[free][:, free],
+        torch.tensor(m["covariance"]["correlation"], dtype=torch.float64)[free][:, free],
         rtol=1e-8,
         atol=1e-10,
     )

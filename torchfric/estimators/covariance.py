@@ -54,7 +54,7 @@ from .sandwich import (
     CORRELATION_LIMIT,
     Identifiability,
     PEMCovariance,
-    at_bound,
+    held_entries,
     identifiability,
     long_run_covariance,
     sandwich,
@@ -279,6 +279,7 @@ def pem_covariance(
     block: int | None = None,
     moving: Sequence[Tensor] | None = None,
     base: Innovations | None = None,
+    stick_speed: float | None = None,
 ) -> PEMCovariance:
     """The sandwich covariance of θ̂ = `theta` `(k,)` (module docstring).
 
@@ -300,6 +301,8 @@ def pem_covariance(
         moving: per experiment, the samples in V (`innovations`); None: all.
         base: `innovations` at θ̂ when the caller has them (a trial step `pem_refine` took):
             not filtered again.
+        stick_speed: the records' stick speed (`prefit.stick_speed`): a tanh neuron that is a
+            step at every faster speed is held (`sandwich.held_entries`); None: none is.
 
     Raises:
         TorchfricError: the fixed-θ filter fails at θ̂ or next to it.
@@ -322,8 +325,8 @@ def pem_covariance(
         )
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
-    held = at_bound(model, theta)  # a neuron's slope pinned at its floor: held there
-    inv, cov = sandwich(info, J, held)
+    floor, steep = held_entries(model, theta, stick_speed)  # neurons at the floor or a step
+    inv, cov = sandwich(info, J, held := floor | steep)
     return PEMCovariance(
         theta=theta.clone(),
         cov=cov,
@@ -336,7 +339,7 @@ def pem_covariance(
         blocks=scores.shape[0],
         bandwidth=bandwidth,
         names=list(names),
-        identifiability=identifiability(info, cov, names, held),
+        identifiability=identifiability(info, cov, names, held, steep),
         steps=h,
     )
 
@@ -430,8 +433,9 @@ def noise_model(
 def _damped_steps(cov: PEMCovariance) -> list[Tensor]:
     """Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` from `cov`'s point, λ = 0.01 … 100:
     each raises ℓ when short enough, and diag I scales them to the parameters' own units. The
-    entries held at their bound (`at_bound`) stay."""
-    free = torch.tensor([n not in cov.identifiability.held for n in cov.names])
+    entries held (`held_entries`) stay."""
+    held = set(cov.identifiability.held) | set(cov.identifiability.steep)
+    free = torch.tensor([n not in held for n in cov.names])
     info, steps = cov.information[free][:, free], torch.zeros(5, len(free), dtype=torch.float64)
     scale = torch.diagonal(info).clamp_min(1e-300)
     for i, lam in enumerate((1e-2, 1e-1, 1.0, 10.0, 100.0)):
@@ -451,6 +455,7 @@ def pem_refine(
     min_gain: float = 0.05,
     start: PEMCovariance | None = None,
     moving: Sequence[Tensor] | None = None,
+    stick_speed: float | None = None,
 ) -> tuple[Tensor, PEMCovariance, list[float]]:
     """Newton steps on ℓ from `theta` to the prediction-error estimate, and its covariance.
 
@@ -468,11 +473,11 @@ def pem_refine(
     rounding-sized amounts (the rig's LuGre config walked there).
 
     `start`: the covariance at `theta` when the caller has it already (not computed again);
-    `moving`: the samples in V (`innovations`).
+    `moving`: the samples in V (`innovations`); `stick_speed`: as `pem_covariance`'s.
 
     Returns ``(θ, covariance at θ, ℓ after each accepted step, the first at the start)``."""
     at = functools.partial(pem_covariance, model, experiments, tuning, q_scale=q_scale,
-                           r_scale=r_scale, moving=moving)  # fmt: skip
+                           r_scale=r_scale, moving=moving, stick_speed=stick_speed)  # fmt: skip
     cov = start or at(theta)
     theta = cov.theta
     trace = [cov.loglik]

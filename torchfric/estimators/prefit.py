@@ -38,7 +38,7 @@ from ..models.arm import ArmModel
 from ..models.friction import make_friction
 
 __all__ = [
-    "PrefitResult", "prefit", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION", "PREFIT_ROWS",
+    "PrefitResult", "prefit", "stick_speed", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION", "PREFIT_ROWS",
 ]  # fmt: skip
 
 CUTOFF_HZ = 50.0
@@ -120,11 +120,24 @@ def moving_samples(
     the axis sticks its friction is whatever balances the other forces, so a static model's
     errors there measure its failure to stick, not M or b (the prediction-error criterion
     leaves those samples out, `torchfric.estimators.covariance`)."""
-    exps = list(experiments)
-    cutoff = default_cutoff_hz(max(e.dt for e in exps)) if cutoff_hz is None else cutoff_hz
-    speeds = [zero_phase_derivative(e.q, e.dt, cutoff).abs() for e in exps]
+    speeds = _speeds(experiments, cutoff_hz)
     v_max = max(float(v.max()) for v in speeds)
     return [v > stick_fraction * v_max for v in speeds]
+
+
+def stick_speed(
+    experiments: Sequence[Experiment], *, cutoff_hz: float | None = None,
+    stick_fraction: float = 0.02,
+) -> float:  # fmt: skip
+    """The speed below which `moving_samples` counts the axis stuck: ``stick_fraction · max |q̇|``."""
+    return stick_fraction * max(float(v.max()) for v in _speeds(experiments, cutoff_hz))
+
+
+def _speeds(experiments: Sequence[Experiment], cutoff_hz: float | None) -> list[Tensor]:
+    """|q̇| of each experiment, the zero-phase derivative at the pre-fit's cut-off."""
+    exps = list(experiments)
+    cutoff = default_cutoff_hz(max(e.dt for e in exps)) if cutoff_hz is None else cutoff_hz
+    return [zero_phase_derivative(e.q, e.dt, cutoff).abs() for e in exps]
 
 
 def _linear_skeleton(

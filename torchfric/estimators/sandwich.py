@@ -44,6 +44,7 @@ __all__ = [
     "VISCOUS_SHARE_SIGMA",
     "ViscousShare",
     "at_bound",
+    "held_entries",
     "identifiability",
     "long_run_covariance",
     "score_sums",
@@ -60,6 +61,12 @@ VISCOUS_SHARE_LIMIT = 0.05
 viscous term b (`viscous_share`; with |s_j| above `VISCOUS_SHARE_SIGMA` σ_b too)."""
 VISCOUS_SHARE_SIGMA = 3.0
 """|s_j / σ_b| above which a neuron's share of b is reported (with `VISCOUS_SHARE_LIMIT`)."""
+STEEP_LIMIT = 5.0
+"""A tanh neuron whose input weight times the stick speed (`prefit.stick_speed`) exceeds this
+is a step at every speed the criterion sees (tanh 5 = 0.99991): its steepness is held, like an
+entry at its floor (`held_entries`). Left free, the polish drove such a weight from 300 to
+2·10⁵ along a direction where ℓ is flat and rough to 0.3 nats (where each sample falls on the
+step), and the σ it reported moved up to 3.7× with a 1e-12 change of θ (docs/results.md)."""
 BOUND_SLOPE = 1e-6
 """A bounded entry of θ whose value moves less than this per unit of θ sits at its bound
 (`at_bound`)."""
@@ -203,18 +210,20 @@ class Identifiability:
     directions: list[tuple[list[str], float]] = field(default_factory=list)
     shares: list[ViscousShare] = field(default_factory=list)
     held: list[str] = field(default_factory=list)
+    steep: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
-        return not self.pairs and not self.directions and not self.shares and not self.held
+        return not (self.pairs or self.directions or self.shares or self.held or self.steep)
 
     @property
     def groups(self) -> list[tuple[list[str], str]]:
         """The strongly correlated pairs joined into groups (connected components), with the
         largest |ρ| in each, then each near-null direction not already inside a group, then
-        each entry held at its bound, then each neuron that takes part of b: the names and how
-        they were found."""
+        each entry held at its bound, then each neuron held as a step, then each neuron that
+        takes part of b: the names and how they were found."""
         held = [([n], "held at its lower bound") for n in self.held]
+        held += [([n], "held: a step at every moving speed") for n in self.steep]
         return self._collinear() + held + [(list(s.names), s.how) for s in self.shares]
 
     def _collinear(self) -> list[tuple[list[str], str]]:
@@ -269,6 +278,12 @@ class Identifiability:
             "W2 near 0, or shares the viscous slope, which a viscous line then names)"
             for n in self.held
         ]
+        out += [
+            f"{n} makes its neuron a step at every speed the criterion sees (its rise lies inside "
+            "the stick band): held there, without σ; the data see the step's height (W2), not "
+            "how steep it is, and the other σ and the curve's band take it as fixed"
+            for n in self.steep
+        ]
         return out + [s.message for s in self.shares]
 
     def to_dict(self) -> dict[str, Any]:
@@ -282,18 +297,25 @@ class Identifiability:
             "share_sigma_limit": VISCOUS_SHARE_SIGMA,
             "viscous_shares": [s.to_dict() for s in self.shares],
             "held_at_bound": list(self.held),
+            "held_steep": list(self.steep),
             "messages": self.messages,
         }
 
 
 def identifiability(
-    information: Tensor, cov: Tensor, names: Sequence[str], held: Tensor | None = None
-) -> Identifiability:
+    information: Tensor, cov: Tensor, names: Sequence[str], held: Tensor | None = None,
+    steep: Tensor | None = None,
+) -> Identifiability:  # fmt: skip
     """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`), near-null
     directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
-    of the largest) among the entries not `held` (bool `(k,)`, `at_bound`), and those held."""
+    of the largest) among the entries not `held` (bool `(k,)`, `at_bound`), and those held:
+    at their floor, or as a step where `steep` says so (`held_entries`)."""
     free = torch.ones(len(names), dtype=torch.bool) if held is None else ~held.to(torch.bool)
-    out = Identifiability(held=[n for n, f in zip(names, free.tolist(), strict=True) if not f])
+    step = [False] * len(names) if steep is None else steep.tolist()
+    out = Identifiability(
+        held=[n for n, f, s in zip(names, free.tolist(), step, strict=True) if not f and not s],
+        steep=[n for n, s in zip(names, step, strict=True) if s],
+    )
     names = [n for n, f in zip(names, free.tolist(), strict=True) if f]
     information, cov = information[free][:, free], cov[free][:, free]
     d = torch.diagonal(cov).clamp_min(0.0).sqrt()
@@ -430,14 +452,28 @@ def _long_run(scores: Tensor, segment: Tensor, lags: int) -> Tensor:
     return 0.5 * (J + J.T)
 
 
-def at_bound(model: Any, theta: Tensor) -> Tensor:
-    """`(k,)` bool: the entries of θ stored above a lower bound (a tanh neuron's input weight
-    above `min_slope`) whose value moves less than `BOUND_SLOPE` per unit of θ: pinned at the
-    bound, they are held there (`_inverse`)."""
+def at_bound(model: Any, theta: Tensor, stick_speed: float | None = None) -> Tensor:
+    """`(k,)` bool: the entries of θ held out of the inverse (`_inverse`), either of
+    `held_entries`."""
+    floor, steep = held_entries(model, theta, stick_speed)
+    return floor | steep
+
+
+def held_entries(
+    model: Any, theta: Tensor, stick_speed: float | None = None
+) -> tuple[Tensor, Tensor]:
+    """`(k,)` bool twice: the entries of θ stored above a lower bound (a tanh neuron's input
+    weight above `min_slope`) that are pinned at it (their value moves less than `BOUND_SLOPE`
+    per unit of θ), and those whose neuron is a step at every speed the criterion sees (input
+    weight × `stick_speed` above `STEEP_LIMIT`; none without a `stick_speed`)."""
+    theta = theta.reshape(-1)
     bounded = model.friction.flat_bounded()
     mask = torch.zeros(theta.numel(), dtype=torch.bool)
     mask[: bounded.numel()] = bounded
-    return mask & (model.physical_slope(theta.reshape(-1)) < BOUND_SLOPE)
+    floor = mask & (model.physical_slope(theta) < BOUND_SLOPE)
+    if stick_speed is None:
+        return floor, torch.zeros_like(floor)
+    return floor, mask & ~floor & (model.to_physical(theta) * stick_speed > STEEP_LIMIT)
 
 
 def sandwich(information: Tensor, J: Tensor, held: Tensor | None) -> tuple[Tensor, Tensor]:

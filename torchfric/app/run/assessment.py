@@ -92,11 +92,12 @@ def _uninformed(
 ) -> list[str]:
     """Parameters the data did not inform: their σ after the passes is still ≥ 90 % of the
     start's (the filter's prior, `EKFTuning.initial_P_theta` at the starting θ). Those held at
-    their bound are left out (identifiability says so), and where the run reports the
+    their bound or as a step are left out (identifiability says so), and where the run reports the
     sandwich's σ (`metrics` ``covariance``) the ± are not the prior's."""
     if covariance is None or start is None or cfg.estimator.method != "ekf":
         return []
-    held = set((metrics.get("identifiability") or {}).get("held_at_bound") or [])
+    ident = metrics.get("identifiability") or {}
+    held = set(ident.get("held_at_bound") or []) | set(ident.get("held_steep") or [])
     P = torch.as_tensor(covariance, dtype=torch.float64)
     P0 = cfg.estimator.ekf_tuning().initial_P_theta(start, start.get_theta())
     prior, now = torch.diagonal(P0).sqrt(), torch.diagonal(P).clamp_min(0.0).sqrt()

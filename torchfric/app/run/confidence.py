@@ -12,7 +12,9 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
 2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
    (`pem_refine`), kept only when it simulates the validation records (else the
    identification records) no worse than the kept θ by 0.1 point; otherwise θ stays. A static
-   model's criterion leaves out the samples where the axis sticks (`_moving`);
+   model's criterion leaves out the samples where the axis sticks (`_moving`); a tanh neuron
+   that is a step at every faster speed keeps its steepness (`_stick_speed`,
+   `sandwich.held_entries`);
 3. the sandwich covariance at the reported θ (`pem_covariance`) plus the outer product of
    its offset from the run's other estimate (`offset_covariance`): the optimum's when the
    polish was rejected (its end plus the Gauss–Newton step still left there), the filter's
@@ -44,7 +46,7 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
-from ...estimators.prefit import moving_samples
+from ...estimators.prefit import moving_samples, stick_speed
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
@@ -171,9 +173,9 @@ def prediction_error(
         ranked = noise_model(model, records, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     except TorchfricError as err:
         ranked, failure = [], err
-    moving = _moving(model, records)
+    moving, stick = _moving(model, records), _stick_speed(records)
     for q_scale, r_scale in ranked[:3]:
-        how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving}
+        how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving, "stick_speed": stick}
         try:
             at_kept = pem_covariance(model, records, tuning, theta, **how)
             polished, pem, trace = pem_refine(model, records, tuning, theta, iterations=8,
@@ -200,6 +202,17 @@ def _stuck_note(cov: dict[str, Any]) -> str:
     """The progress line's note of the samples left out of the criterion, if any."""
     stuck = cov.get("stuck_left_out", 0.0)
     return f"; {stuck:.0%} of the samples stuck, left out" if stuck else ""
+
+
+def _stick_speed(records: list[Experiment]) -> float | None:
+    """The records' stick speed (`stick_speed`): above it a tanh neuron that has risen fully
+    is a step, its steepness held (`sandwich.held_entries`). None without positions."""
+    if any(e.q is None for e in records):
+        return None
+    try:
+        return stick_speed(records)
+    except TorchfricError:  # a record too short for the zero-phase filter
+        return None
 
 
 def _moving(model: ArmModel, train: list[Experiment]) -> list[torch.Tensor] | None:
