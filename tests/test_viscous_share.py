@@ -23,7 +23,7 @@ from torchfric.app.run import confidence
 from torchfric.app.run.confidence import run_identifiability
 from torchfric.data import Experiment
 from torchfric.data.axis import STRIBECK_AXIS, axis_record
-from torchfric.estimators import sandwich
+from torchfric.estimators import sandwich, uncertainty
 from torchfric.estimators.sandwich import (
     Identifiability,
     PEMCovariance,
@@ -165,8 +165,9 @@ def test_a_run_carries_the_check_to_metrics_warnings_and_report(
     """The plumbing of a real (short) run. Its fit is sound, so both limits are set below 0
     here: every neuron is then flagged, and each must reach metrics.json's identifiability and
     warnings, the summary's warnings and report.html, over the run's own speeds."""
-    monkeypatch.setattr(sandwich, "VISCOUS_SHARE_LIMIT", -1.0)
-    monkeypatch.setattr(sandwich, "VISCOUS_SHARE_SIGMA", -1.0)
+    for module in (sandwich, uncertainty):  # the check's (uncertainty) and the report's limits
+        monkeypatch.setattr(module, "VISCOUS_SHARE_LIMIT", -1.0)
+        monkeypatch.setattr(module, "VISCOUS_SHARE_SIGMA", -1.0)
     for kind in ("identification", "validation"):
         r = axis_record(STRIBECK_AXIS, seed=5, duration=4.0, kind=kind)
         np.savetxt(tmp_path / f"{kind}.csv", np.column_stack([r["t"], r["u"], r["q"]]),

@@ -20,9 +20,8 @@ measured channel:
 4. `pem_refine`: Gauss–Newton steps on V from the kept θ to the prediction-error estimate,
    whose spread that covariance describes.
 
-A static model's criterion leaves out the samples where the axis sticks (`moving`, from
-`torchfric.estimators.prefit.moving_samples`). `tests/test_covariance.py` checks all of it
-against a 2-state EKF written from scratch and differentiated by autograd.
+A static model's criterion leaves out the stuck samples (`moving`: `prefit.moving_samples`).
+`tests/test_covariance.py` checks it against a 2-state EKF written from scratch, by autograd.
 
 Why this size: the innovations, their sensitivities and the sums over them stream a long
 record block by block together; the statistics they feed are apart (`sandwich`).
@@ -286,11 +285,10 @@ def pem_covariance(
     The criterion is the prediction error ``V(θ) = Σ_t e_t²/S_t`` (the innovations normalised
     by the filter's own variances; ``loglik`` reports ``−½ V``). Sensitivities ``∂e_t/∂θ_j`` by
     central differences of the innovations of 2k + 1 fixed-θ filters, with steps
-    ``h_j = 1e-4 · max(|θ_j|, 1)`` in estimation coordinates (first derivatives: truncation
-    ~1e-8 relative, far above rounding). From them, per sample, the score ``−e_t ∂e_t / S_t``
-    and the Gauss–Newton information ``I = Σ_t ∂e_tᵀ∂e_t / S_t``, positive semi-definite by
-    construction (the forms measured and dropped: docs/estimators.md). The sandwich does not
-    depend on the scale of S: I and J scale alike.
+    ``h_j = 1e-4 · max(|θ_j|, 1)`` in estimation coordinates (truncation ~1e-8 relative). Per
+    sample the score ``−e_t ∂e_t / S_t`` and the Gauss–Newton information ``I = Σ_t ∂e_tᵀ∂e_t
+    / S_t``, positive semi-definite (other forms, dropped: docs/estimators.md). The sandwich
+    does not depend on the scale of S: I and J scale alike.
 
     Args:
         model, experiments, tuning: the run's model, identification records and EKF tuning
@@ -301,8 +299,7 @@ def pem_covariance(
         moving: per experiment, the samples in V (`innovations`); None: all.
         base: `innovations` at θ̂ when the caller has them (a trial step `pem_refine` took):
             not filtered again.
-        stick_speed: the records' stick speed (`prefit.stick_speed`): a tanh neuron that is a
-            step at every faster speed is held (`sandwich.held_entries`); None: none is.
+        stick_speed: `prefit.stick_speed` of the records: a neuron that is a step above it is held.
 
     Raises:
         TorchfricError: the fixed-θ filter fails at θ̂ or next to it.
@@ -325,8 +322,8 @@ def pem_covariance(
         )
     gradient = scores.sum(0)
     J, bandwidth = long_run_covariance(scores, torch.tensor(segment))
-    floor, steep = held_entries(model, theta, stick_speed)  # neurons at the floor or a step
-    inv, cov = sandwich(info, J, held := floor | steep)
+    floor, steep = held_entries(model, theta, stick_speed)  # at the floor or a step: held
+    inv, cov = sandwich(info, J, floor | steep)
     return PEMCovariance(
         theta=theta.clone(),
         cov=cov,
@@ -339,7 +336,7 @@ def pem_covariance(
         blocks=scores.shape[0],
         bandwidth=bandwidth,
         names=list(names),
-        identifiability=identifiability(info, cov, names, held, steep),
+        identifiability=identifiability(info, cov, names, floor | steep, steep),
         steps=h,
     )
 
@@ -434,8 +431,8 @@ def _damped_steps(cov: PEMCovariance) -> list[Tensor]:
     """Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` from `cov`'s point, λ = 0.01 … 100:
     each raises ℓ when short enough, and diag I scales them to the parameters' own units. The
     entries held (`held_entries`) stay."""
-    held = set(cov.identifiability.held) | set(cov.identifiability.steep)
-    free = torch.tensor([n not in held for n in cov.names])
+    ident = cov.identifiability
+    free = torch.tensor([n not in {*ident.held, *ident.steep} for n in cov.names])
     info, steps = cov.information[free][:, free], torch.zeros(5, len(free), dtype=torch.float64)
     scale = torch.diagonal(info).clamp_min(1e-300)
     for i, lam in enumerate((1e-2, 1e-1, 1.0, 10.0, 100.0)):
@@ -462,15 +459,13 @@ def pem_refine(
     The EKF's passes end near, not at, the maximum of the fixed-θ likelihood (measured: the
     Newton step from a converged run's θ was up to 9 σ for curve parameters and 4–5 σ for b);
     the σ describe the spread of that maximum, so they can only cover the truth from there.
-    Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (the pseudo-inverse of `sandwich._inverse`:
-    directions the data do not determine are not moved), whole or halved up to four times,
-    whichever first raises ℓ (the five filtered as one batch); when none does,
-    Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` with λ = 0.01 … 100 (`_damped_steps`;
-    without them 6 of 20 seeds of a Coulomb axis took no step and kept M 3.3–6 σ off).
-    It stops when the step's expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ`` falls below `min_gain` nats,
-    when no trial raises ℓ, or after `iterations`. No trial puts any |θ| at half the filter's
-    box (``tuning.theta_bound``): along a direction the data barely see, ℓ keeps rising by
-    rounding-sized amounts (the rig's LuGre config walked there).
+    Each iteration takes the Gauss–Newton step ``I⁻¹ ∇ℓ`` (`sandwich._inverse`: undetermined and
+    held directions do not move), whole or halved up to four times, whichever first raises ℓ
+    (one batch); when none does, Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ``, λ = 0.01 …
+    100 (`_damped_steps`; without them 6 of 20 seeds of a Coulomb axis kept M 3.3–6 σ off).
+    It stops when the expected gain ``½ ∇ℓᵀ I⁻¹ ∇ℓ`` falls below `min_gain` nats, when no trial
+    raises ℓ, or after `iterations`. No trial puts any |θ| at half the filter's box
+    (``tuning.theta_bound``: the rig's LuGre config walked there, ℓ rising by rounding).
 
     `start`: the covariance at `theta` when the caller has it already (not computed again);
     `moving`: the samples in V (`innovations`); `stick_speed`: as `pem_covariance`'s.

@@ -13,10 +13,9 @@ the simulation-error (`oe_covariance`) forms.
   largest eigenvalue left out (a pseudo-inverse), reported by `identifiability` by name; the
   entries `at_bound` (a neuron's slope pinned at its floor) held: the others' σ given them
   (inverted with the rest, one got a variance of 1e283 and the band ±5e53 N m).
-- `viscous_share`: the tanh neurons that still rise over the data's upper speeds and so take
-  part of b's slope (`ViscousShare`, joined to the report by the run's confidence stage): a
-  bias the covariance cannot show (the fit is well determined; its b is not the viscous term
-  alone).
+- `viscous_share` (from `uncertainty`, named here too): the tanh neurons that still rise over
+  the data's upper speeds and so take part of b's slope (`ViscousShare`, joined to the report
+  by the run's confidence stage): a bias the covariance cannot show.
 
 Why this size: one statistic, the sandwich, and the report read off it; both estimators use it.
 """
@@ -24,15 +23,14 @@ Why this size: one statistic, the sandwich, and the report read off it; both est
 from __future__ import annotations
 
 import math
-import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from .settings import speed_quantiles
+from .uncertainty import VISCOUS_SHARE_LIMIT, VISCOUS_SHARE_SIGMA, ViscousShare, viscous_share
 
 __all__ = [
     "BLOCKS",
@@ -56,11 +54,6 @@ CORRELATION_LIMIT = 0.99
 CONDITION_LIMIT = 1e-8
 """A direction of the scaled information with eigenvalue below this fraction of the largest is
 reported as not identifiable."""
-VISCOUS_SHARE_LIMIT = 0.05
-"""|s_j / b| above which a tanh neuron's slope over the data's upper speeds takes part of the
-viscous term b (`viscous_share`; with |s_j| above `VISCOUS_SHARE_SIGMA` σ_b too)."""
-VISCOUS_SHARE_SIGMA = 3.0
-"""|s_j / σ_b| above which a neuron's share of b is reported (with `VISCOUS_SHARE_LIMIT`)."""
 STEEP_LIMIT = 5.0
 """A tanh neuron whose input weight times the stick speed (`prefit.stick_speed`) exceeds this
 is a step at every speed the criterion sees (tanh 5 = 0.99991): its steepness is held, like an
@@ -70,131 +63,6 @@ step), and the σ it reported moved up to 3.7× with a 1e-12 change of θ (docs/
 BOUND_SLOPE = 1e-6
 """A bounded entry of θ whose value moves less than this per unit of θ sits at its bound
 (`at_bound`)."""
-_W1 = re.compile(r"W1\[(\d+)\]")
-
-
-@dataclass(frozen=True)
-class ViscousShare:
-    """The tanh neurons that, together, still rise over the data's upper speeds
-    (`viscous_share`).
-
-    ``names``: ``("viscous", "W1[j]", "W2[j]", …)`` as θ names them, the neurons that carry the
-    slope (largest first); ``slope``: their net mean slope ``Σ s_j`` between ``v_half`` and
-    ``v95``, the 95th percentile of |q̇| and its half; ``viscous``, ``viscous_std``: b and its σ."""
-
-    names: tuple[str, ...]
-    slope: float
-    viscous: float
-    viscous_std: float
-    v_half: float
-    v95: float
-
-    @property
-    def share(self) -> float:
-        """``s_j / b``."""
-        return self.slope / self.viscous
-
-    @property
-    def sigmas(self) -> float:
-        """``s_j / σ_b``."""
-        return self.slope / self.viscous_std
-
-    @property
-    def how(self) -> str:
-        return f"slope {100 * self.share:.0f} % of b between v95/2 and v95"
-
-    @property
-    def message(self) -> str:
-        w1s = self.names[1::2]
-        which = " and ".join(n[3:-1] for n in w1s)
-        one = len(w1s) == 1
-        return (
-            f"viscous and neuron{'' if one else 's'} {which} ({', '.join(self.names[1:])}) are "
-            "not separately identifiable over this data's speeds: the "
-            f"{'neuron' + chr(39) + 's tanh still rises' if one else 'neurons still rise'} between "
-            f"v95/2 = {self.v_half:.3g} and v95 = {self.v95:.3g} ({'its' if one else 'their net'} "
-            f"slope there is {100 * self.share:.0f} % of b, {abs(self.sigmas):.0f} σ_b), so "
-            f"b = {self.viscous:.3g} is not the viscous term alone; raise model.saturation (to "
-            "twice its value, 6 for the default 3) so that every neuron saturates below half "
-            "the data's top speed"
-        )
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "parameters": list(self.names),
-            "slope": self.slope,
-            "share": self.share,
-            "sigmas": self.sigmas,
-            "viscous": self.viscous,
-            "viscous_std": self.viscous_std,
-            "v_half": self.v_half,
-            "v95": self.v95,
-        }
-
-
-def viscous_share(
-    values: Mapping[str, float], speeds: Tensor, *, viscous_std: float | None
-) -> list[ViscousShare]:
-    """The tanh neurons that take part of the viscous term's slope over the data's upper speeds.
-
-    For each neuron j (θ names ``W1[j]``, ``W2[j]``), its mean slope over the upper half of
-    the data's speeds, from v95/2 to v95 (v95 the 95th percentile of ``|speeds|``)::
-
-        s_j = W2_j (tanh(W1_j v95) − tanh(W1_j v95/2)) / (v95/2)
-
-    and their net slope ``S = Σ s_j`` (what the curve adds to b there) is reported when
-    ``|S| > VISCOUS_SHARE_LIMIT |b|`` and ``|S| > VISCOUS_SHARE_SIGMA σ_b``, naming the neurons
-    with ``|s_j| >= 1 %`` of b. The net, not each neuron: two slow neurons whose slopes cancel
-    (measured: +23 % and −24 % of b, b within 1.5 σ) leave b the slope there. The upper half of
-    the speed range, not of the samples: on a stick-slip record the median speed is near rest
-    (a linear axis: v50 4e-5 against v95 0.23 m/s), and a neuron that draws the Stribeck dip
-    there would be counted as slope. In a fit that separates them every neuron is saturated
-    there and the friction's slope is b alone; the bound ``W1_j > saturation / v95`` saturates
-    a neuron at v95, not over the upper half of the speeds. Measured: on 12 seeds of a user's
-    rotary axis (b = 0.002, v95 6.73 rad/s) one fit kept a neuron at its bound (W1 = 0.464,
-    W2 = −0.009: −6.6 % of b, 9.6 σ_b) with b 47 σ off, its correlations below 0.99, and
-    nothing else is named; on the 40 tanh and LuGre runs of the coverage study, nothing; on a
-    linear axis (b = 8 N s/m) a fit with b = 1.23 is named (+423 %), its refit with
-    ``model.saturation = 6`` (b = 7.88) is not.
-    A LuGre sliding curve is C held at ``C(v_s)`` below its stick velocity (``lugre_vstick``):
-    C is read at ``max(v, v_s)`` there.
-
-    Args:
-        values: θ in physical units by name (`ArmModel.physical_parameters`).
-        speeds: the identification data's velocity, any shape.
-        viscous_std: σ_b; ``None`` or 0 (b has no σ: the report names it as not determined)
-            reports nothing.
-
-    Returns ``[]``, or one `ViscousShare` when the net slope is over both limits; always ``[]``
-    for a model without ``viscous`` or without tanh neurons (polytopic, Coulomb, Stribeck).
-    """
-    b = values.get("viscous")
-    if b is None or not b > 0 or not viscous_std or not math.isfinite(viscous_std):
-        return []
-    found = speed_quantiles(speeds, [0.5, 0.95])
-    if found is None:
-        return []
-    v50, v95 = found
-    v_half = 0.5 * v95
-    if not v95 > v50:  # speeds that do not spread: no slope to tell apart
-        return []
-    stick = values.get("lugre_vstick", 0.0)
-    lo, hi = max(v_half, stick), max(v95, stick)
-    slopes = []
-    for name, w1 in values.items():
-        match = _W1.fullmatch(name)
-        w2_name = f"W2[{match[1]}]" if match else ""
-        if w2_name not in values:
-            continue
-        # s_j = W2_j (tanh(W1_j v95) − tanh(W1_j v95/2)) / (v95/2)
-        s = values[w2_name] * (math.tanh(w1 * hi) - math.tanh(w1 * lo)) / (v95 - v_half)
-        slopes.append((s, name, w2_name))
-    net = sum(s for s, _, _ in slopes)
-    if not (abs(net) > VISCOUS_SHARE_LIMIT * b and abs(net) > VISCOUS_SHARE_SIGMA * viscous_std):
-        return []
-    carry = sorted((x for x in slopes if abs(x[0]) >= 0.01 * b), key=lambda x: -abs(x[0]))
-    names = ("viscous", *(n for _, w1, w2 in carry or slopes[:1] for n in (w1, w2)))
-    return [ViscousShare(names, net, b, viscous_std, v_half, v95)]
 
 
 @dataclass

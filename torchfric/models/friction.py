@@ -226,7 +226,7 @@ class OddTanhFriction(Friction):
             stays linear over the whole data and the total friction's slope at the top speeds
             is ``b`` alone. A neuron that saturates only near that speed can still share b's
             slope over the upper half of the data; a run checks for it and says so
-            (`torchfric.estimators.sandwich.viscous_share`). The sign of a neuron lives in W2.
+            (`torchfric.estimators.uncertainty.viscous_share`). The sign of a neuron lives in W2.
     """
 
     kind = "tanh"
