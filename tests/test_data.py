@@ -513,6 +513,38 @@ def test_no_time_column_needs_time_step(tmp_path: pathlib.Path) -> None:
         load_experiment(path, columns={"q": "th"}, time_step=-0.1)
 
 
+def test_a_sample_counter_keeps_the_samples_a_logger_dropped_as_a_gap(
+    tmp_path: pathlib.Path,
+) -> None:
+    # A logger's file without a time column: a sample counter ("Index"), tabs, CRLF, a comment
+    # line; 250 samples dropped after row 600. With time_step, t comes from the counter, so the
+    # record is two segments whose times are the counter's; arange(N)·dt would join rows 599
+    # and 850 as one step and q would jump there.
+    from torchfric.data import load_segments
+    from torchfric.data.lab import counter_time
+
+    dt, n = 1e-3, 1200
+    index = np.r_[np.arange(600), np.arange(850, 850 + n - 600)]
+    q = np.sin(index * dt * 3.0)
+    rows = "".join(
+        f"{i}\t{0.1 * math.cos(i * dt)}\t{v:.9f}\r\n" for i, v in zip(index, q, strict=True)
+    )
+    path = tmp_path / "logger.txt"
+    path.write_text("# logger, axis 1\r\nIndex\tCmd [V]\tPos [rad]\r\n" + rows)
+    exps, notes = load_segments(path, columns={"u": "Cmd [V]", "q": "Pos [rad]"}, time_step=dt)
+    assert [e.n for e in exps] == [600, 600] and "250 samples" in notes[0]
+    np.testing.assert_allclose(exps[1].t.numpy(), index[600:] * dt, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(exps[1].q.numpy(), q[600:], rtol=0, atol=1e-9)
+    t, label = counter_time({"Index": index.astype(float)}, dt)
+    assert label == "t = (Index − 0)·0.001" and t[600] == pytest.approx(0.85)
+    # not a counter: another name, a step back, steps of 2, a fraction
+    assert counter_time({"Position": index.astype(float)}, dt) is None
+    assert counter_time({"Sample": np.array([0.0, 1, 2, 1, 2])}, dt) is None
+    assert counter_time({"Nr.": np.arange(0.0, 20, 2)}, dt) is None
+    assert counter_time({"idx": np.array([0.0, 1, 2.5, 3])}, dt) is None
+    assert counter_time({"Sample [-]": np.arange(5.0) + 7}, dt)[1] == "t = (Sample [-] − 7)·0.001"
+
+
 def test_csv_errors(tmp_path: pathlib.Path) -> None:
     path = tmp_path / "h.csv"
     path.write_text("0,1,2\n0.001,1,2\n")

@@ -20,7 +20,7 @@ from ..errors import MissingColumn, TorchfricError
 from .convert import _check_step, _one_line
 from .experiment import Experiment, _check_shapes, _validate
 from .guards import _check_memory, _check_regular_file
-from .lab import nice_period, read_text_table, split_segments, wrap_jumps
+from .lab import counter_time, nice_period, read_text_table, split_segments, wrap_jumps
 from .units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, position_factor, split_unit
 
 __all__ = [
@@ -351,8 +351,9 @@ def load_segments(
                 "(data.time_step in a run config)",
                 role="t",
             )
-        cols = {"t": np.arange(cols["q"].shape[0]) * time_step} | cols
-        labels["t"] = f"t = arange(N)*{time_step:g}"
+        counted = counter_time(table, time_step)  # dropped samples stay a gap
+        cols = {"t": counted[0] if counted else np.arange(cols["q"].shape[0]) * time_step} | cols
+        labels["t"] = counted[1] if counted else f"t = arange(N)*{time_step:g}"
     else:
         cols["t"] = cols["t"] * TIME_UNITS[time_unit]
     _check_shapes(cols, labels, str(p))

@@ -51,7 +51,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_segments
-from ...data.lab import sniff_format
+from ...data.lab import counter_time, sniff_format
 from ...data.readers import FILE_TYPES, TEXT_TYPES, read_columns, save_csv
 from ...data.units import POSITION_UNITS
 from ...errors import TorchfricError
@@ -119,6 +119,7 @@ class _Plan:
         self.split = ""
         self.segments: list[Experiment] = []
         self.time_unit = "s"
+        self.counter: str | None = None  # how t came from the file's sample counter
         self.counts: dict[str, float | None] = {}
         self.position = PositionGuess("rad", "")
         self.cutoff: float | None = None
@@ -316,6 +317,8 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
     plan.mapping = map_columns(table, columns, data, time_step is not None)
     plan.read_as = dict(plan.mapping)
     plan.time_step = time_step if "t" not in plan.mapping else None
+    counted = counter_time(table, plan.time_step) if plan.time_step else None
+    plan.counter = counted[1] if counted else None
     plan.time_unit = time_unit_of(plan.mapping) if plan.time_step is None else "s"
     exps, notes = load_segments(data, columns=plan.mapping, time_step=time_step,
                                 time_unit=plan.time_unit, wrap_period=math.inf)  # fmt: skip
@@ -440,11 +443,14 @@ def write_starter(
     _propose_validation(plan, split)
     found = _write(plan, force)
     exp = plan.exp
+    counted = [f"time        {plan.counter} (a sample counter: skipped samples stay gaps)"]
+    counted = counted if plan.counter else []
     lines = [
         f"data        {plan.data.name}: {_samples(plan)}, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} "
         f"Hz, uniform to {plan.jitter:.2g} of a step)",
         "columns     " + ", ".join(f"{k} = {v!r}" for k, v in plan.read_as.items()),
         *([f"time        {plan.time_unit} (converted to s)"] if plan.time_unit != "s" else []),
+        *counted,
         f"position    {plan.position.unit} ({plan.position.why})",
     ]
     if plan.validation:

@@ -65,7 +65,9 @@ class DataConfig(TableSection):
         columns.qdot: the file's measured velocity column (default: qdot, read when the file
             has it), in `position_unit` per second; the estimators use it with
             ``velocity = "measured"``.
-        time_step: sample period [s] for files without a t column (checked against t otherwise).
+        time_step: sample period [s] for files without a t column (checked against t otherwise);
+            t is then the file's sample counter (a column named Index, Sample, Nr …) times it
+            where there is one, so that samples a logger dropped stay gaps.
         velocity: q̇ measurement for the estimators: "highpass" (the paper's causal
             differentiator, started at the record's first-step speed, so a record may start
             in motion), "zero_phase" (off-line) or "measured" (the file's qdot column).

@@ -1,18 +1,28 @@
 """Records as lab software and drives write them: CSV text in any common dialect (`text`:
 the delimiter and decimal separator sniffed, rows named by their line in the file), and
 records with holes or wrapping positions (`segments`: gaps and NaN rows cut a record into
-segments; wraps of a single-turn encoder found). `torchfric.data.readers` uses both."""
+segments; wraps of a single-turn encoder found; a sample counter read as time). `torchfric.data.readers` uses both."""
 
-from .segments import MIN_SEGMENT, Segments, nice_period, split_segments, wrap_jumps
+from .segments import (
+    COUNTER_NAMES,
+    MIN_SEGMENT,
+    Segments,
+    counter_time,
+    nice_period,
+    split_segments,
+    wrap_jumps,
+)
 from .text import CSV_FIX, MAX_LINE, RowLines, TextFormat, read_text_table, sniff_format
 
 __all__ = [
+    "COUNTER_NAMES",
     "CSV_FIX",
     "MAX_LINE",
     "MIN_SEGMENT",
     "RowLines",
     "Segments",
     "TextFormat",
+    "counter_time",
     "nice_period",
     "read_text_table",
     "sniff_format",

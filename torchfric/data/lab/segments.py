@@ -10,11 +10,14 @@
   count at 4096 → 0, an angle at 360° → 0): at least half q's range in one step, at least
   `_JUMP_RATIO` times the largest other step, from one end of the range to within 10 % of the
   other, in a q that moves (20 values or more). `nice_period` proposes the period.
+- `counter_time`: t of a file without a time column, from its sample counter where it has one
+  (``Index``, ``Sample``, ``Nr`` …), so that samples its logger dropped stay a gap.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -22,7 +25,10 @@ import numpy as np
 
 from ...errors import TorchfricError
 
-__all__ = ["MIN_SEGMENT", "Segments", "nice_period", "split_segments", "wrap_jumps"]
+__all__ = [
+    "COUNTER_NAMES", "MIN_SEGMENT", "Segments", "counter_time", "nice_period", "split_segments",
+    "wrap_jumps",
+]  # fmt: skip
 
 MIN_SEGMENT = 50
 MIN_SEGMENT_S = 0.2
@@ -153,3 +159,33 @@ def nice_period(q: np.ndarray) -> float:
     candidates += [m * 10.0**k for k in range(-3, 12) for m in (1, 2, 2.5, 5)]
     fits = [c for c in candidates if span * (1 - 1e-9) <= c <= 1.05 * span]
     return min(fits) if fits else float(f"{span:.3g}")
+
+
+COUNTER_NAMES = frozenset({
+    "index", "idx", "sample", "samples", "sample no", "sample nr", "nr", "no", "count", "counter",
+    "step", "frame", "zähler", "zaehler", "lfd nr", "lfd. nr", "messpunkt",
+})  # fmt: skip
+"""Header names (case and a unit in brackets aside) that `counter_time` reads as a sample
+counter."""
+
+
+def counter_time(
+    table: Mapping[str, np.ndarray], time_step: float
+) -> tuple[np.ndarray, str] | None:
+    """``(t, label)`` of a file without a time column, from its sample counter: the first
+    column named as in `COUNTER_NAMES` whose values are whole numbers that rise by 1 from row to
+    row (more where the logger dropped samples), ``t = (counter − counter₀)·time_step``. With
+    it the dropped samples stay a gap (`split_segments`), where ``arange(N)·time_step`` would
+    join the rows on either side as if they were one step apart. None when there is no such
+    column (a counter that ever steps back or does not mostly step by 1 is none)."""
+    for name, col in table.items():
+        base = re.sub(r"\s*[\[(].*$", "", name).strip().lower().rstrip(".:#").strip()
+        if base not in COUNTER_NAMES or np.ndim(col) != 1 or np.size(col) < 2:
+            continue
+        c = np.asarray(col, dtype=np.float64)
+        steps = np.diff(c)
+        if not np.isfinite(c).all() or (c != np.round(c)).any() or (steps <= 0).any():
+            continue
+        if np.median(steps) == 1:
+            return (c - c[0]) * time_step, f"t = ({name} − {c[0]:g})·{time_step:g}"
+    return None
