@@ -299,7 +299,7 @@ def pem_covariance(
         moving: per experiment, the samples in V (`innovations`); None: all.
         base: `innovations` at θ̂ when the caller has them (a trial step `pem_refine` took):
             not filtered again.
-        stick_speed: `prefit.stick_speed` of the records: a neuron that is a step above it is held.
+        stick_speed: `prefit.stick_band`'s speed: a neuron that is a step above it is held.
 
     Raises:
         TorchfricError: the fixed-θ filter fails at θ̂ or next to it.
@@ -336,7 +336,7 @@ def pem_covariance(
         blocks=scores.shape[0],
         bandwidth=bandwidth,
         names=list(names),
-        identifiability=identifiability(info, cov, names, floor | steep, steep),
+        identifiability=identifiability(info, cov, names, floor, steep),
         steps=h,
     )
 
@@ -431,8 +431,8 @@ def _damped_steps(cov: PEMCovariance) -> list[Tensor]:
     """Levenberg–Marquardt steps ``(I + λ diag I)⁻¹ ∇ℓ`` from `cov`'s point, λ = 0.01 … 100:
     each raises ℓ when short enough, and diag I scales them to the parameters' own units. The
     entries held (`held_entries`) stay."""
-    ident = cov.identifiability
-    free = torch.tensor([n not in {*ident.held, *ident.steep} for n in cov.names])
+    held = {*cov.identifiability.held, *cov.identifiability.steep}
+    free = torch.tensor([n not in held for n in cov.names])
     info, steps = cov.information[free][:, free], torch.zeros(5, len(free), dtype=torch.float64)
     scale = torch.diagonal(info).clamp_min(1e-300)
     for i, lam in enumerate((1e-2, 1e-1, 1.0, 10.0, 100.0)):

@@ -38,7 +38,7 @@ from ..models.arm import ArmModel
 from ..models.friction import make_friction
 
 __all__ = [
-    "PrefitResult", "prefit", "stick_speed", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION", "PREFIT_ROWS",
+    "PrefitResult", "prefit", "stick_band", "default_cutoff_hz", "CUTOFF_HZ", "NYQUIST_FRACTION", "PREFIT_ROWS",
 ]  # fmt: skip
 
 CUTOFF_HZ = 50.0
@@ -120,24 +120,20 @@ def moving_samples(
     the axis sticks its friction is whatever balances the other forces, so a static model's
     errors there measure its failure to stick, not M or b (the prediction-error criterion
     leaves those samples out, `torchfric.estimators.covariance`)."""
-    speeds = _speeds(experiments, cutoff_hz)
-    v_max = max(float(v.max()) for v in speeds)
-    return [v > stick_fraction * v_max for v in speeds]
+    return stick_band(experiments, cutoff_hz=cutoff_hz, stick_fraction=stick_fraction)[1]
 
 
-def stick_speed(
+def stick_band(
     experiments: Sequence[Experiment], *, cutoff_hz: float | None = None,
     stick_fraction: float = 0.02,
-) -> float:  # fmt: skip
-    """The speed below which `moving_samples` counts the axis stuck: ``stick_fraction · max |q̇|``."""
-    return stick_fraction * max(float(v.max()) for v in _speeds(experiments, cutoff_hz))
-
-
-def _speeds(experiments: Sequence[Experiment], cutoff_hz: float | None) -> list[Tensor]:
-    """|q̇| of each experiment, the zero-phase derivative at the pre-fit's cut-off."""
+) -> tuple[float, list[Tensor]]:  # fmt: skip
+    """``(stick speed, moving_samples)``: the speed ``stick_fraction · max |q̇|`` below which
+    the axis counts as stuck, and per experiment the samples above it, from one filtering."""
     exps = list(experiments)
     cutoff = default_cutoff_hz(max(e.dt for e in exps)) if cutoff_hz is None else cutoff_hz
-    return [zero_phase_derivative(e.q, e.dt, cutoff).abs() for e in exps]
+    speeds = [zero_phase_derivative(e.q, e.dt, cutoff).abs() for e in exps]
+    stick = stick_fraction * max(float(v.max()) for v in speeds)
+    return stick, [v > stick for v in speeds]
 
 
 def _linear_skeleton(

@@ -55,7 +55,7 @@ CONDITION_LIMIT = 1e-8
 """A direction of the scaled information with eigenvalue below this fraction of the largest is
 reported as not identifiable."""
 STEEP_LIMIT = 5.0
-"""A tanh neuron whose input weight times the stick speed (`prefit.stick_speed`) exceeds this
+"""A tanh neuron whose input weight times the stick speed (`prefit.stick_band`) exceeds this
 is a step at every speed the criterion sees (tanh 5 = 0.99991): its steepness is held, like an
 entry at its floor (`held_entries`). Left free, the polish drove such a weight from 300 to
 2·10⁵ along a direction where ℓ is flat and rough to 0.3 nats (where each sample falls on the
@@ -176,14 +176,13 @@ def identifiability(
 ) -> Identifiability:  # fmt: skip
     """Near-collinear parameter pairs (|ρ| of `cov` above `CORRELATION_LIMIT`), near-null
     directions of `information` scaled to unit diagonal (eigenvalue below `CONDITION_LIMIT`
-    of the largest) among the entries not `held` (bool `(k,)`, `at_bound`), and those held:
-    at their floor, or as a step where `steep` says so (`held_entries`)."""
-    free = torch.ones(len(names), dtype=torch.bool) if held is None else ~held.to(torch.bool)
-    step = [False] * len(names) if steep is None else steep.tolist()
-    out = Identifiability(
-        held=[n for n, f, s in zip(names, free.tolist(), step, strict=True) if not f and not s],
-        steep=[n for n, s in zip(names, step, strict=True) if s],
-    )
+    of the largest) among the entries held neither at their floor (`held`, bool `(k,)`) nor as
+    a step (`steep`; both from `held_entries`), and those held."""
+    none = torch.zeros(len(names), dtype=torch.bool)
+    held, steep = (none if m is None else m.to(torch.bool) for m in (held, steep))
+    free = ~(held | steep)
+    out = Identifiability(held=[n for n, h in zip(names, held.tolist(), strict=True) if h],
+                          steep=[n for n, s in zip(names, steep.tolist(), strict=True) if s])  # fmt: skip
     names = [n for n, f in zip(names, free.tolist(), strict=True) if f]
     information, cov = information[free][:, free], cov[free][:, free]
     d = torch.diagonal(cov).clamp_min(0.0).sqrt()

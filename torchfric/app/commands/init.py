@@ -443,14 +443,13 @@ def write_starter(
     _propose_validation(plan, split)
     found = _write(plan, force)
     exp = plan.exp
-    counted = [f"time        {plan.counter} (a sample counter: skipped samples stay gaps)"]
-    counted = counted if plan.counter else []
+    counter = f"time        {plan.counter} (a sample counter: skipped samples stay gaps)"
     lines = [
         f"data        {plan.data.name}: {_samples(plan)}, dt {exp.dt:.6g} s ({1 / exp.dt:.6g} "
         f"Hz, uniform to {plan.jitter:.2g} of a step)",
         "columns     " + ", ".join(f"{k} = {v!r}" for k, v in plan.read_as.items()),
         *([f"time        {plan.time_unit} (converted to s)"] if plan.time_unit != "s" else []),
-        *counted,
+        *([counter] if plan.counter else []),
         f"position    {plan.position.unit} ({plan.position.why})",
     ]
     if plan.validation:

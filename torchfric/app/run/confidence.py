@@ -12,9 +12,8 @@ stage of `torchfric.estimators.covariance`, with θ fixed and q the one measurem
 2. the polish: Gauss–Newton steps from the kept θ to the prediction-error estimate
    (`pem_refine`), kept only when it simulates the validation records (else the
    identification records) no worse than the kept θ by 0.1 point; otherwise θ stays. A static
-   model's criterion leaves out the samples where the axis sticks (`_moving`); a tanh neuron
-   that is a step at every faster speed keeps its steepness (`_stick_speed`,
-   `sandwich.held_entries`);
+   model's criterion leaves out the samples where the axis sticks, and a tanh neuron that is
+   a step at every faster speed keeps its steepness (`_stick`, `sandwich.held_entries`);
 3. the sandwich covariance at the reported θ (`pem_covariance`) plus the outer product of
    its offset from the run's other estimate (`offset_covariance`): the optimum's when the
    polish was rejected (its end plus the Gauss–Newton step still left there), the filter's
@@ -46,7 +45,7 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
-from ...estimators.prefit import moving_samples, stick_speed
+from ...estimators.prefit import stick_band
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
@@ -173,7 +172,7 @@ def prediction_error(
         ranked = noise_model(model, records, tuning, theta, q_scale=q_scale, r_scale=r_scale)
     except TorchfricError as err:
         ranked, failure = [], err
-    moving, stick = _moving(model, records), _stick_speed(records)
+    moving, stick = _stick(model, records)
     for q_scale, r_scale in ranked[:3]:
         how = {"q_scale": q_scale, "r_scale": r_scale, "moving": moving, "stick_speed": stick}
         try:
@@ -204,29 +203,24 @@ def _stuck_note(cov: dict[str, Any]) -> str:
     return f"; {stuck:.0%} of the samples stuck, left out" if stuck else ""
 
 
-def _stick_speed(records: list[Experiment]) -> float | None:
-    """The records' stick speed (`stick_speed`): above it a tanh neuron that has risen fully
-    is a step, its steepness held (`sandwich.held_entries`). None without positions."""
-    if any(e.q is None for e in records):
-        return None
+def _stick(
+    model: ArmModel, train: list[Experiment]
+) -> tuple[list[torch.Tensor] | None, float | None]:
+    """``(moving, stick speed)`` of the records (`stick_band`). A static model's criterion
+    leaves out the samples where the axis sticks (a static curve cannot hold a stuck axis, and
+    its errors there biased M, docs/estimators.md); a dynamic model's bristles describe the
+    stick, so it keeps them (moving None), as does a record with too few moving samples. Above
+    the stick speed a tanh neuron that has risen fully is a step, its steepness held
+    (`sandwich.held_entries`). Both None without positions or for a record too short for the
+    zero-phase filter."""
+    if any(e.q is None for e in train):
+        return None, None
     try:
-        return stick_speed(records)
-    except TorchfricError:  # a record too short for the zero-phase filter
-        return None
-
-
-def _moving(model: ArmModel, train: list[Experiment]) -> list[torch.Tensor] | None:
-    """A static model's criterion leaves out the samples where the axis sticks
-    (`moving_samples`: a static curve cannot hold a stuck axis, and its errors there biased M,
-    docs/estimators.md); a dynamic model's bristles describe the stick, so it keeps them. None
-    where the records have no positions or too few moving samples."""
-    if model.state_size != 2 or any(e.q is None for e in train):
-        return None
-    try:
-        moving = moving_samples(train)
-    except TorchfricError:  # a record too short for the zero-phase filter: keep every sample
-        return None
-    return moving if sum(int(m.sum()) for m in moving) >= 50 * model.num_parameters else None
+        stick, moving = stick_band(train)
+    except TorchfricError:  # too short for the zero-phase filter: every sample, nothing held
+        return None, None
+    enough = sum(int(m.sum()) for m in moving) >= 50 * model.num_parameters
+    return (moving if model.state_size == 2 and enough else None), stick
 
 
 def _noise_dict(tuning: Any, q_scale: float, r_scale: float, train: list[Experiment]) -> dict:
