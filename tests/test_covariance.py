@@ -459,6 +459,39 @@ def test_identifiability_names_a_null_direction_of_the_information() -> None:
     assert identifiability(D @ D, torch.eye(4), names).ok
 
 
+def test_an_offset_keeps_only_what_the_information_determines() -> None:
+    # Two estimates of one run (the filter's kept pass, the polish's end) can differ along a
+    # direction the data do not determine by anything at all: there the likelihood is flat and
+    # the polish walks freely (log b moved by 4e138 on a ball-screw table, its σ then ±5e140).
+    # `determined` keeps the offset's part that the information sees: I⁺ I offset, the
+    # identity on the determined directions, zero along a null one and on a held entry.
+    from torchfric.estimators.sandwich import Identifiability
+
+    v = torch.tensor([1.0, -1.0, 0.8, 0.01], dtype=torch.float64)
+    v = v / v.norm()
+    d = torch.tensor([1e-3, 1.0, 30.0, 1e6, 2.0], dtype=torch.float64)
+    information = torch.zeros(5, 5, dtype=torch.float64)
+    scale = torch.diag(d[:4])
+    information[:4, :4] = scale @ (torch.eye(4, dtype=torch.float64) - torch.outer(v, v)) @ scale
+    information[4, 4] = 3.0 * d[4] ** 2
+    information[0, 4] = information[4, 0] = 0.1 * d[0] * d[4]  # the held entry is coupled
+    zero = torch.zeros(5, dtype=torch.float64)
+    pem = PEMCovariance(theta=zero, cov=torch.eye(5, dtype=torch.float64), information=information,
+                        score_cov=information, gradient=zero, newton=zero, loglik=0.0, samples=1,
+                        blocks=1, bandwidth=1, names=["a", "b", "c", "d", "e"],
+                        identifiability=Identifiability(held=["e"]))  # fmt: skip
+    null = torch.cat([v / d[:4], torch.zeros(1, dtype=torch.float64)])  # null among the free
+    assert float((information[:4, :4] @ null[:4]).abs().max()) < 1e-12
+    seen = torch.cat([torch.tensor([1.0, 1.0, 0.0, 0.0], dtype=torch.float64) / d[:4],
+                      torch.zeros(1, dtype=torch.float64)])  # ⟂ v once scaled  # fmt: skip
+    torch.testing.assert_close(pem.determined(seen), seen, rtol=1e-12, atol=1e-15)
+    assert float(pem.determined(1e138 * null).abs().max()) < 1e138 * 1e-12
+    held = torch.tensor([0.0, 0.0, 0.0, 0.0, 7.0], dtype=torch.float64)
+    assert pem.determined(held).tolist() == [0.0] * 5
+    mixed = pem.determined(seen + 5.0 * null + held)
+    torch.testing.assert_close(mixed, seen, rtol=1e-9, atol=1e-12)
+
+
 def test_a_slope_pinned_at_its_floor_is_held_and_the_rest_keep_finite_sigma() -> None:
     # A neuron whose input weight sits on its floor (W1 = min_slope: the data would take it
     # lower) no longer moves with its stored r (slope sigmoid(r/lo) = 0). Inverted with the

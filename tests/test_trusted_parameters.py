@@ -228,8 +228,9 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
     covariance is the sandwich's at the reported one plus the outer product of their offset,
     ``cov + o oᵀ``. A rejected polish (forced: the polished θ scored 0) keeps the filter's θ
     and reports ``offset_to_optimum``; a kept polish (forced: scored 100) reports
-    ``offset_to_filter``, the filter's θ minus the polished one. The correlation is the
-    sandwich's alone, and every σ² is at least its parameter's offset²."""
+    ``offset_to_filter``, the filter's θ minus the polished one, each along the directions the
+    information determines. The correlation is the sandwich's alone, and every σ² is at least
+    its parameter's offset²."""
     import torchfric.app.run.confidence as confidence
 
     scores = iter([0.0, 100.0] if kept == "filter" else [100.0, 0.0])  # polished θ first
@@ -249,7 +250,18 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
         assert "offset_to_optimum" not in m["covariance"]
         offset = torch.tensor(m["covariance"]["offset_to_filter"], dtype=torch.float64)
         filter_theta = torch.as_tensor(state["filter_theta"], dtype=torch.float64)
-        torch.testing.assert_close(offset, filter_theta - theta, rtol=0, atol=0)
+        model = torchfric.load_checkpoint(result.checkpoint)  # the physical distance, in θ's
+        physical = model.to_physical(filter_theta) - model.to_physical(theta)  # scale at θ
+        distance = physical / model.physical_slope(theta)
+    ident = m["identifiability"]
+    held = set(ident["held_at_bound"]) | set(ident["held_steep"])
+    names = list(m["parameters"])
+    free = torch.tensor([n not in held for n in names])
+    # only the part the information determines (`PEMCovariance.determined`): none on a held
+    # entry, and all of it where no direction is near null
+    assert bool((offset[~free] == 0).all())
+    if kept == "polish" and not ident["directions"]:
+        torch.testing.assert_close(offset[free], distance[free], rtol=1e-9, atol=1e-12)
     assert offset.abs().max() > 0
     P = torch.as_tensor(state["P_theta"], dtype=torch.float64)
     torch.testing.assert_close(P, P.T)
@@ -257,10 +269,6 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
     sandwich = P - torch.outer(offset, offset)
     d = torch.sqrt(torch.diagonal(sandwich).clamp_min(0.0))
     # entries held (a neuron at its floor or a step) have no σ of their own: only those
-    ident = m["identifiability"]
-    held = set(ident["held_at_bound"]) | set(ident["held_steep"])
-    names = list(m["parameters"])
-    free = torch.tensor([n not in held for n in names])
     assert bool((d[~free] < 1e-12 * d.max()).all()) and bool((d[free] > 0).all())
     torch.testing.assert_close(
         (sandwich / torch.outer(d, d))[free][:, free],
@@ -268,6 +276,30 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
         rtol=1e-8,
         atol=1e-10,
     )
+
+
+def test_the_offset_is_the_physical_distance_between_the_two_estimates() -> None:
+    """`physical_offset`: in θ's coordinates by the delta method's scale at θ, so σ_b² reported
+    (slope² × (σ_θ² + offset²)) is the sandwich's plus (b_other − b)². A polish that drove log b
+    to −4e138 (b = 0, on a ball-screw table) is all of b away, not 4e138."""
+    from torchfric.app.run.confidence import physical_offset
+    from torchfric.models.arm import ArmModel
+
+    model = ArmModel(OddTanhFriction(2, w1=[1.0, 20.0], w2=[0.05, 0.1]), inertia=18.0,
+                     viscous=120.0, c_m=40.0)  # fmt: skip
+    names = model.theta_names
+    theta = model.get_theta()
+    other = theta.clone()
+    other[names.index("viscous")] = -4e138
+    other[names.index("inertia")] += math.log(1.5)
+    other[names.index("W2[1]")] += 0.25
+    off = physical_offset(model, theta, other)
+    slope = model.physical_slope(theta)
+    assert float(off[names.index("viscous")] * slope[names.index("viscous")]) == pytest.approx(-120.0)
+    assert float(off[names.index("viscous")]) == pytest.approx(-1.0)
+    assert float(off[names.index("inertia")] * slope[names.index("inertia")]) == pytest.approx(9.0)
+    assert float(off[names.index("W2[1]")]) == pytest.approx(0.25, rel=1e-12)
+    assert float(off[names.index("W1[1]")]) == 0.0
 
 
 # A light linear axis that sticks at its reversals (3.5 kg, 1 µm encoder, Coulomb 2.5 N, which

@@ -111,13 +111,13 @@ def attach_covariance(
         # `newton_step_sigma`.
         extra["polish_rejected"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say("  prediction-error polish simulated worse and was not kept")
-        pem, offset = at_kept, found.offset_from(theta)
+        pem, offset = at_kept, found.offset_from(final, theta)
     elif len(trace) > 1:  # the prediction-error optimum: the model moves there
         # Its σ include its distance from the filter's kept pass (`offset_covariance`): about
         # σ where the class holds the machine, the size of its bias where it does not.
         final.set_theta(polished)
         state["filter_theta"], state["theta"] = theta, polished.clone()
-        offset = theta - polished
+        offset = pem.determined(physical_offset(final, polished, theta))
         extra["polished"] = {"steps": len(trace) - 1, "loglik_gain": trace[-1] - trace[0]}
         say(
             f"  prediction-error polish: {len(trace) - 1} Newton step(s) from the kept pass, "
@@ -154,10 +154,25 @@ class PredictionError:
     q_scale: float
     r_scale: float
 
-    def offset_from(self, theta: torch.Tensor) -> torch.Tensor:
+    def offset_from(self, model: ArmModel, theta: torch.Tensor) -> torch.Tensor:
         """θ's offset from the criterion's optimum: the polish's end and the Gauss–Newton step
-        still left there (its budget ran out, ℓ still rising)."""
-        return self.polished - theta + self.pem.newton
+        still left there (its budget ran out, ℓ still rising), measured as `physical_offset`
+        and along the directions the information at θ determines (`PEMCovariance.determined`)."""
+        optimum = self.polished + self.pem.newton
+        return self.at_kept.determined(physical_offset(model, theta, optimum))
+
+
+def physical_offset(model: ArmModel, theta: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
+    """``other − theta`` as the distance of their physical values, in θ's coordinates by the
+    delta method's scale at `theta` (`ArmModel.physical_slope`, how the σ are reported), so a
+    reported σ² is the sandwich's plus the square of that physical distance. A log-scaled b
+    that the other estimate drives to 0 is 1 (all of b) away, not the 4e138 of log b that a
+    polish walking off along a flat likelihood reached on a ball-screw table. Entries without
+    a slope, or whose physical distance is not finite, keep ``other − theta``."""
+    slope = model.physical_slope(theta)
+    dist = model.to_physical(other) - model.to_physical(theta)
+    usable = (slope.abs() > 0) & torch.isfinite(dist)
+    return torch.where(usable, dist / torch.where(usable, slope, 1.0), other - theta)
 
 
 def prediction_error(
@@ -194,7 +209,7 @@ def covariance_at(
     run whose polish was rejected reports it (`torchfric track` after a change,
     `torchfric.app.commands.bands`)."""
     found = prediction_error(model, records, _position_only(tuning), theta)
-    return offset_covariance(found.at_kept.cov, found.offset_from(theta))
+    return offset_covariance(found.at_kept.cov, found.offset_from(model, theta))
 
 
 def _stuck_note(cov: dict[str, Any]) -> str:
