@@ -18,7 +18,9 @@ LuGre bristles with a pre-sliding range of 0.4 encoder counts), ``linear`` (`LIN
 static, an EMPS-like linear axis), ``emps`` (the measured EMPS records,
 `experiments/configs/emps_defaults.toml`; scored by the benchmark protocol on the test file),
 and, not in the default list, two machines the rule was not tuned on: ``spindle`` (LuGre, bristles
-travelling 6 counts of a 4096-count encoder) and ``carriage`` (static, sticking hard).
+travelling 6 counts of a 4096-count encoder) and ``carriage`` (static, sticking hard), and three
+added with the rule in time: ``table`` (a heavy ball-screw table, static, a 0.5-µm scale),
+``belt`` and ``belt-fast`` (LuGre belt axes whose bristles settle over 5 and 1.7 samples).
 Columns per class: validation FIT on q (EMPS: test RMSE in mm), inertia error, steady-state
 friction curve RMS error in % of the true curve's peak (over 5–95 % of the data's speeds, the
 jump at zero left out), and the run's wall time.
@@ -65,8 +67,26 @@ SPINDLE_AXIS = AxisParameters(inertia=0.05, c_m=2.0, viscous=0.01, coulomb=0.3, 
 CARRIAGE_AXIS = AxisParameters(inertia=8.0, c_m=20.0, viscous=30.0, coulomb=6.0, static=12.0,
                                stribeck_velocity=0.005, quantum=1e-6, max_speed=0.3,
                                max_input=3.0)  # fmt: skip
+# Three more, added with the rule in time (`torchfric.models.lugre.stick_rate`, 2026-11-28): a
+# heavy ball-screw table with static friction and a 0.5-µm scale (a user walk's machine, where
+# LuGre fits travelled 1–10 counts yet settled within a sample), and a LuGre belt axis whose
+# bristles settle over 5 samples (belt) or 1.7 samples (belt-fast), 20 and 2.2 counts of travel.
+TABLE_AXIS = AxisParameters(inertia=18.0, c_m=40.0, viscous=120.0, coulomb=15.0, static=24.0,
+                            stribeck_velocity=0.004, quantum=0.5e-6, disturbance_std=0.3,
+                            max_speed=0.15, max_input=1.5)  # fmt: skip
+
+
+def _belt(rate_per_sample: float) -> AxisParameters:
+    sigma0 = 6.0 * (rate_per_sample / 1e-3) ** 2  # √(σ0/M) × dt = rate_per_sample, M 6 kg
+    return AxisParameters(inertia=6.0, c_m=25.0, viscous=40.0, coulomb=8.0, static=12.0,
+                          stribeck_velocity=0.01, friction="lugre", sigma0=sigma0,
+                          sigma1=1.6 * math.sqrt(6.0 * sigma0), quantum=5e-6, max_speed=0.5,
+                          max_input=3.0, substeps=40)  # fmt: skip
+
+
 AXES = {"stribeck": STRIBECK_AXIS, "lugre": LUGRE_AXIS, "linear": LINEAR_AXIS,
-        "spindle": SPINDLE_AXIS, "carriage": CARRIAGE_AXIS}  # fmt: skip
+        "spindle": SPINDLE_AXIS, "carriage": CARRIAGE_AXIS, "table": TABLE_AXIS,
+        "belt": _belt(0.2), "belt-fast": _belt(0.6)}  # fmt: skip
 CONFIGS = {
     "rig": ROOT / "experiments" / "configs" / "arm_defaults.toml",
     "emps": ROOT / "experiments" / "configs" / "emps_defaults.toml",
@@ -146,6 +166,7 @@ def one(out: Path, machine: str, seed: int) -> dict[str, Any]:
     row: dict[str, Any] = {"machine": machine, "seed": seed, "chosen": chosen, "t": dyn["t"],
                            "gain": dyn["gain"], "auto_seconds": secs,
                            "travel_steps": dyn["bristle_travel"] / dyn["position_step"],
+                           "per_sample": dyn["stick_rate"] * dyn["sample_time"],
                            "rmse": {r["dynamic"]: r["rmse_q"] for r in dyn["table"]}}  # fmt: skip
     row[chosen] = _score(machine, metrics, ckpt, m_true, truth, speeds) | {"seconds": None}
     metrics2, ckpt2, secs2 = _train(folder, cfg, [*sets, f"model.dynamic={other}"], other)
@@ -167,7 +188,8 @@ def _speeds(machine: str, seed: int) -> np.ndarray:
 
 
 def print_table(rows: list[dict]) -> None:
-    head = ("machine", "seed", "auto keeps", "t", "MSE gain", "bristle travel", "static FIT q / RMSE",
+    head = ("machine", "seed", "auto keeps", "t", "MSE gain", "bristle travel",
+            "settling per sample", "static FIT q / RMSE",
             "LuGre FIT q / RMSE", "static M err", "LuGre M err", "static curve", "LuGre curve",
             "auto time", "other time")  # fmt: skip
     print("| " + " | ".join(head) + " |")
@@ -184,7 +206,8 @@ def print_table(rows: list[dict]) -> None:
         other = s if r["chosen"] == "lugre" else d
         print(
             f"| {r['machine']} | {r['seed']} | {NAMES[r['chosen']]} | {r['t']:+.1f} | "
-            f"{100 * r['gain']:+.1f} % | {r['travel_steps']:.2f} steps | {fit(s)} | {fit(d)} | {pct(s, 'inertia_err_pct')} | "
+            f"{100 * r['gain']:+.1f} % | {r['travel_steps']:.2f} steps | {r['per_sample']:.2f} | "
+            f"{fit(s)} | {fit(d)} | {pct(s, 'inertia_err_pct')} | "
             f"{pct(d, 'inertia_err_pct')} | {s.get('curve_err_pct', float('nan')):.2f} % | "
             f"{d.get('curve_err_pct', float('nan')):.2f} % | {r['auto_seconds']:.0f} s | "
             f"{other['seconds']:.0f} s |"
@@ -194,7 +217,7 @@ def print_table(rows: list[dict]) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--machines", nargs="+", default=["rig", "stribeck", "lugre", "linear", "emps"],
-                   choices=["rig", "stribeck", "lugre", "linear", "emps", "spindle", "carriage"])  # fmt: skip
+                   choices=["rig", "emps", *AXES])  # fmt: skip
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)

@@ -112,6 +112,48 @@ def test_auto_keeps_lugre_on_lugre_data(lugre_record: Experiment) -> None:
     # the rig's bristles travel 2 Fs/σ0 = 2 counts through a reversal: seen by its encoder
     assert d["position_step"] == pytest.approx(RigParameters().quantum, rel=1e-9)
     assert 1.0 < d["bristle_travel"] / d["position_step"] < 3.0
+    # and the rig stuck on them settles over about three samples (0.31 of the sample rate)
+    assert d["sample_time"] == RigParameters().dt
+    assert 0.1 < d["stick_rate"] * d["sample_time"] < d["stick_rate_limit"] == 1.0
+
+
+def test_bristles_over_within_a_sample_leave_the_static_model(
+    lugre_record: Experiment, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rule in time, wired into the choice: with the limit below the rig's own rate (as if
+    it were sampled 4× slower than its bristles need) the same comparison keeps static, and
+    the summary says what LuGre's better windows may mean."""
+    import torchfric.models.lugre as lugre_module
+
+    monkeypatch.setattr(lugre_module, "STICK_RATE_LIMIT", 0.1)
+    static, lugre = _starts(lugre_record)
+    d = compare_dynamics(static, lugre, [lugre_record], EKFTuning()).to_dict()
+    assert d["t"] > 2.0 and 1.0 < d["bristle_travel"] / d["position_step"]  # seen in space
+    assert d["chosen"] == "none"
+    summary = " ".join(dynamic_lines(d))
+    assert "over within a sample, σ0 → ∞ in time (static)" in summary
+    assert "settle within a sample: if the machine may be dynamic, record it faster" in summary
+
+
+def test_the_stick_rate_is_the_fast_root_of_the_stuck_axis() -> None:
+    """`stick_rate` against numpy's roots of ``M s² + (σ1 + b) s + σ0`` (under- and
+    overdamped), and `bristles_timed` at its limit."""
+    import numpy as np
+
+    from torchfric.models.lugre import STICK_RATE_LIMIT, bristles_timed, stick_rate
+
+    for m, s0, s1, b in [(0.03, 1343.0, 12.0, 0.01), (18.0, 7.5e7, 8.3e4, 120.0),
+                         (6.0, 2.4e5, 1920.0, 40.0), (1.0, 100.0, 20.0, 0.0)]:  # fmt: skip
+        arm = {k: torch.tensor(v, dtype=torch.float64) for k, v in
+               [("inertia", m), ("lugre_sigma0", s0), ("lugre_sigma1", s1), ("viscous", b)]}  # fmt: skip
+        fastest = max(abs(r) for r in np.roots([m, s1 + b, s0]))
+        assert stick_rate(arm) == pytest.approx(fastest, rel=1e-9)
+    no_b = {"inertia": torch.tensor(1.0), "lugre_sigma0": torch.tensor(4.0),
+            "lugre_sigma1": torch.tensor(1.0)}  # fmt: skip
+    assert stick_rate(no_b) == pytest.approx(2.0, rel=1e-12)  # complex roots: √(σ0/M)
+    assert bristles_timed(STICK_RATE_LIMIT / 1e-3, 1e-3)
+    assert not bristles_timed(1.01 * STICK_RATE_LIMIT / 1e-3, 1e-3)
+    assert not bristles_timed(math.nan, 1e-3)
 
 
 def test_bristles_finer_than_the_encoder_leave_the_static_model(lugre_record: Experiment) -> None:

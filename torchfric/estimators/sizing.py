@@ -38,7 +38,8 @@ the held-out rest in 0.05-s open-loop windows from its own filter (`selection.wi
 windows also reward a model that sticks, which a static curve through zero cannot; so LuGre is
 kept only when its bristles are seen as well: their travel through a reversal, ``2 g(0)/σ0``,
 must lie between the records' position step and span (`torchfric.models.lugre.bristles_seen`:
-below, σ0 → ∞, the static model that sticks; beyond, σ0 → 0, bristles that never slide).
+below, σ0 → ∞, the static model that sticks; beyond, σ0 → 0, bristles that never slide), and
+their transient must last a couple of samples (`bristles_timed`; faster is σ0 → ∞ in time).
 
 Why this size: one concept, the model's structure from the identification data, and one
 machinery for it (every candidate identified by the same batched ensemble, `compare_sizes`,
@@ -60,7 +61,13 @@ from torch import Tensor
 from ..data import Experiment, position_step
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from ..models.lugre import bristle_travel, bristles_seen
+from ..models.lugre import (
+    STICK_RATE_LIMIT,
+    bristle_travel,
+    bristles_seen,
+    bristles_timed,
+    stick_rate,
+)
 from .ekf import FilterFailure
 from .ensemble import _filter_members, make_masked_step, member_grid
 from .observers import Callback
@@ -357,9 +364,11 @@ class DynamicsResult:
     window_seconds: float
     holdout: float
     seconds: float
-    travel: float  # the dynamic model's bristle travel through a reversal, 2 g(0)/σ0
-    step: float  # the records' position step (`position_step`)
-    span: float  # the longest record's position range, max q − min q
+    bristle_travel: float  # the dynamic model's travel through a reversal, 2 g(0)/σ0
+    position_step: float  # the records' (`position_step`)
+    position_span: float  # the longest record's position range, max q − min q
+    stick_rate: float  # the dynamic model's `stick_rate` [1/s]
+    sample_time: float  # the records' shortest
     thetas: dict[str, Tensor] = dataclasses.field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -369,21 +378,10 @@ class DynamicsResult:
              "rmse_q": self.rmse[d], "chosen": d == self.chosen}
             for d, s in self.scores.items()
         ]  # fmt: skip
-        return {
-            "criterion": DYNAMICS_CRITERION,
-            "chosen": self.chosen,
-            "gain": self.gain,
-            "t": self.t,
-            "t_min": T_MIN,
-            "windows": self.windows,
-            "window_seconds": self.window_seconds,
-            "holdout": self.holdout,
-            "seconds": self.seconds,
-            "bristle_travel": self.travel,
-            "position_step": self.step,
-            "position_span": self.span,
-            "table": table,
-        }
+        plain = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                 if f.name not in ("scores", "rmse", "thetas")}  # fmt: skip
+        limits = {"t_min": T_MIN, "stick_rate_limit": STICK_RATE_LIMIT}
+        return {"criterion": DYNAMICS_CRITERION, **plain, **limits, "table": table}
 
 
 def held_out_heads(experiments: Sequence[Experiment], holdout: float = HOLDOUT) -> list[Experiment]:
@@ -413,12 +411,14 @@ def compare_dynamics(
     starts an open-loop simulation every `window_seconds` (`window_errors`), and the windows'
     mean squared position errors are compared pair by pair. The dynamic model is kept only when
     its windows predict better by more than `T_MIN` standard errors of the mean difference and
-    its bristles travel between one position step and the records' span (`bristles_seen`);
-    otherwise (a tie, bristles the records cannot see or that never slide in them, or every
+    its bristles travel between one position step and the records' span (`bristles_seen`)
+    and ring slowly enough for the samples to see them (`bristles_timed`: the stuck axis's
+    `stick_rate` times the sample time at most `STICK_RATE_LIMIT`); otherwise (a tie, bristles the records cannot see or that never slide in them, or every
     dynamic filter diverging) the static model, the simpler one, is. The windows see stiction
     as much as bristle dynamics: a static curve through zero cannot stick, so on machines with
     sharp stiction LuGre predicts better whatever its σ0, and a σ0 too stiff for the encoder to
-    see is the static limit σ0 → ∞ (docs/results.md, "Static, LuGre or auto").
+    see, or whose transient is over within a sample, is the static limit σ0 → ∞
+    (docs/results.md, "Static, LuGre or auto").
 
     Raises:
         TorchfricError: no record is long enough to hold a window out, or the static model's
@@ -454,12 +454,15 @@ def compare_dynamics(
     se = float(d.std() / math.sqrt(n)) if n > 1 and bool(torch.isfinite(d).all()) else math.nan
     t = float(d.mean()) / se if se > 0 else (math.inf if float(d.mean()) > 0 else -math.inf)
     gain = 1.0 - float(b.mean() / a.mean())
-    travel = bristle_travel(dynamic.friction, *dynamic.split(thetas[b_key]))
+    fric, arm = dynamic.split(thetas[b_key])
+    travel, rate = bristle_travel(dynamic.friction, fric, arm), stick_rate(arm)
+    dt = min(e.dt for e in exps)
     step, span = position_step(exps), max(float(e.q.max() - e.q.min()) for e in exps)
-    chosen = b_key if t > T_MIN and bristles_seen(travel, step, span) else a_key
+    seen = bristles_seen(travel, step, span) and bristles_timed(rate, dt)
+    chosen = b_key if t > T_MIN and seen else a_key
     rmse = {k: float(v.mean().sqrt()) for k, v in mse.items()}
     return DynamicsResult(scores, rmse, gain, t, chosen, n, window_seconds, holdout,
-                          time.perf_counter() - t0, travel, step, span, thetas)  # fmt: skip
+                          time.perf_counter() - t0, travel, step, span, rate, dt, thetas)  # fmt: skip
 
 
 def _identify_and_predict(

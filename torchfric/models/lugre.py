@@ -46,6 +46,9 @@ __all__ = [
     "bristle_solve",
     "bristle_travel",
     "bristles_seen",
+    "bristles_timed",
+    "stick_rate",
+    "STICK_RATE_LIMIT",
     "positive_level",
     "sliding_level",
     "sliding_curve",
@@ -94,6 +97,35 @@ def bristle_travel(friction: Friction, fric: dict[str, Tensor], arm: dict[str, T
     zero = torch.zeros(1, dtype=arm["lugre_sigma0"].dtype)
     level = sliding_level(friction, zero, fric, arm["lugre_vstick"])[0]
     return float(2.0 * level / arm["lugre_sigma0"])
+
+
+STICK_RATE_LIMIT = 1.0
+"""The fastest rate of a stuck axis on its bristles, times the sample time, above which a record
+cannot see the bristles move (`stick_rate`): their transient is over within one sample."""
+
+
+def stick_rate(arm: dict[str, Tensor]) -> float:
+    """The fastest rate [1/s] of the axis stuck on its bristles, ``M ẍ + (σ1 + b) ẋ + σ0 x = 0``
+    (the bristle state z and q move together while the axis sticks): the larger magnitude of
+    its two roots, ``√(σ0/M)`` when they are complex.
+
+    Pre-sliding is seen in time as well as in position: bristles whose transient is over
+    within a couple of samples move through a reversal as the limit σ0 → ∞ does, a static
+    model that sticks. On a heavy ball-screw table with static friction (a stiff regularised
+    stiction law) the LuGre fits that won the windows settled at 1.6–4.5 per sample (their
+    travel was 1–10 encoder steps); on five LuGre machines, 0.04–0.61 (docs/results.md,
+    "Static, LuGre or auto")."""
+    m, k = arm["inertia"], arm["lugre_sigma0"]
+    c = arm["lugre_sigma1"] + (arm["viscous"] if "viscous" in arm else 0.0)
+    a, b = float(c / m), float(k / m)
+    disc = a * a - 4.0 * b
+    return 0.5 * (a + math.sqrt(disc)) if disc > 0 else math.sqrt(b)
+
+
+def bristles_timed(rate: float, dt: float) -> bool:
+    """Whether a `stick_rate` is slow enough for records sampled every `dt` to see it (a NaN
+    rate, from a failed fit, is not)."""
+    return rate * dt <= STICK_RATE_LIMIT
 
 
 def bristles_seen(travel: float, step: float, span: float = math.inf) -> bool:

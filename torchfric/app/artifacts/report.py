@@ -264,7 +264,11 @@ def _dynamics(metrics: Mapping[str, Any]) -> str:
         f"{_num(dyn.get('position_step', math.nan), '.3g')} (a travel below the encoder's step "
         "is the limit σ0 → ∞, a static model that sticks), and less than the records' position "
         f"span of {_num(dyn.get('position_span', math.inf), '.3g')} (beyond it the bristles "
-        "never slide: σ0 → 0, a spring). The one-step BIC is shown but not "
+        "never slide: σ0 → 0, a spring); and only if the axis stuck on its bristles settles "
+        f"slowly enough for the samples to see it: {_num(dyn.get('stick_rate', math.nan), '.3g')}"
+        f" /s × the sample time {_num(dyn.get('sample_time', math.nan), '.3g')} s at most "
+        f"{_num(dyn.get('stick_rate_limit', math.nan), 'g')} (faster is σ0 → ∞ in time). "
+        "The one-step BIC is shown but not "
         "used: the bristle state's extra freedom raises the filter's likelihood on static "
         "machines too.</p>"
     )

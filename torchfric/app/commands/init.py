@@ -250,8 +250,8 @@ _HELP = {
     "takes part of it on machines that stick), 3 for LuGre, whose bristles hold the stick.",
     "dynamic": '"auto": static friction and LuGre bristle dynamics (stick, pre-sliding, '
     "hysteresis) are both identified on the first 70 % of the records; LuGre is kept only if it "
-    "predicts the held-out rest better and its bristles move the encoder (the summary shows "
-    'both). "none" or "lugre" fixes the '
+    "predicts the held-out rest better and its bristles move the encoder slowly enough for the "
+    'samples to see (the summary shows both). "none" or "lugre" fixes the '
     "class and skips the comparison (a run about twice as fast).",
     "train": "Identification records (paths relative to this file); every pass uses all of them.",
     "validation": "Held-out records: open-loop FIT after every pass, which picks the pass kept.",

@@ -238,9 +238,11 @@ class ModelConfig(TableSection):
             error is lower by more than 2 standard errors of the paired difference and its
             bristles travel at least one position step through a reversal (2 g(0)/σ0; a
             stiffer σ0 is, for this record, σ0 → ∞: a static model that sticks) and less
-            than the records' position span (a softer one never slides: σ0 → 0), else the
-            static model (`torchfric.app.run.autosize`; the comparison is in metrics.json's
-            ``dynamics``, the summary and report.html). The validation and test records are
+            than the records' position span (a softer one never slides: σ0 → 0), and the
+            axis stuck on them settles slowly enough for the samples to see it (its faster
+            rate × the sample time ≤ 1; faster is σ0 → ∞ in time), else the static model
+            (`torchfric.app.run.autosize`; the comparison is in metrics.json's ``dynamics``,
+            the summary and report.html). The validation and test records are
             not read. A run then trains the chosen class on all the data (about 2.4× the time
             of a run of one class). Beyond 100,000 samples in all, both classes are
             identified on four excerpts of each record's first 70 % (70,000 samples in all)

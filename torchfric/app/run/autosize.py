@@ -27,7 +27,9 @@ started from its own filter. LuGre is kept only when its windows predict the pos
 by more than two standard errors and its bristles travel at least one position step through a
 reversal (``2 g(0)/σ0``; stiffer bristles are, for this record, the limit σ0 → ∞: a static
 model that sticks) and less than the records' position span (softer ones never slide in the
-record: σ0 → 0, a spring and a damper); otherwise the static model is kept. The run then trains the chosen
+record: σ0 → 0, a spring and a damper), and the axis stuck on them settles slowly enough for
+the samples to see it (`stick_rate` × the sample time ≤ 1; faster is σ0 → ∞ in time);
+otherwise the static model is kept. The run then trains the chosen
 class on the whole records like any other run. The comparison goes into ``metrics.json`` (key
 ``dynamics``), ``report.html`` and the summary (`dynamic_lines`).
 
@@ -50,7 +52,7 @@ from ...estimators.sizing import (
     held_out_heads,
     nests,
 )
-from ...models.lugre import CLASS_NAMES, bristles_seen
+from ...models.lugre import CLASS_NAMES, bristles_seen, bristles_timed
 from ...resources import ekf_bytes, require_memory
 from ..config import AUTO_SIZES, Config
 from .inputs import check_resources, config_model, initial_model
@@ -194,7 +196,8 @@ def choose_dynamic(
         f"{1 - HOLDOUT:.0%} of each record{_excerpts(len(ident), used, whole)}, each "
         f"predicting the last {HOLDOUT:.0%} in "
         f"{WINDOW_SECONDS:g}-s open-loop windows; LuGre is kept if it predicts better by > 2 σ "
-        "and its bristles travel more than a position step and less than the records' span"
+        "and its bristles travel more than a position step and less than the records' span, "
+        "slowly enough for the samples to see"
     )
     result = compare_dynamics(
         starts["none"], starts["lugre"], train, est.ekf_tuning(), spec, device=device,
@@ -273,25 +276,49 @@ def dynamic_lines(dynamics: Mapping[str, Any]) -> list[str]:
         f"  LuGre's windows: mean squared error {how} than static's, {t_text} standard errors "
         f"of the difference (LuGre is kept above {dynamics['t_min']:g})"
     )
+    return lines + _bristle_lines(dynamics, t, gain)
+
+
+def _bristle_lines(dynamics: Mapping[str, Any], t: float, gain: float) -> list[str]:
+    """`dynamic_lines`' lines on LuGre's bristles: their travel against the records' step and
+    span, how fast the axis settles on them against the sample time, and a hint where LuGre
+    predicted better than static yet was not kept."""
     travel, step = dynamics.get("bristle_travel"), dynamics.get("position_step")
-    if travel is not None and step is not None:
-        span = dynamics.get("position_span", math.inf)
-        seen = bristles_seen(travel, step, span)
-        why = (
-            "" if seen
-            else ": they never slide within the records (σ0 → 0: a spring, not friction)"
-            if not travel < span
-            else ": the record cannot tell σ0 from ∞ (static)"
-        )  # fmt: skip
+    if travel is None or step is None:
+        return []
+    span = dynamics.get("position_span", math.inf)
+    seen = bristles_seen(travel, step, span)
+    why = (
+        "" if seen
+        else ": they never slide within the records (σ0 → 0: a spring, not friction)"
+        if not travel < span
+        else ": the record cannot tell σ0 from ∞ (static)"
+    )  # fmt: skip
+    lines = [
+        f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
+        f"{travel / step:.2g} position steps of {step:.3g} (kept from 1 step up to the "
+        f"records' span of {span:.3g}){why}"
+    ]
+    rate, dt = dynamics.get("stick_rate"), dynamics.get("sample_time")
+    timed = rate is None or dt is None or bristles_timed(rate, dt)
+    if rate is not None and dt is not None:
         lines.append(
-            f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
-            f"{travel / step:.2g} position steps of {step:.3g} (kept from 1 step up to the "
-            f"records' span of {span:.3g}){why}"
+            f"  stuck on them, the axis settles at {rate:.3g} /s, {rate * dt:.2g} per sample "
+            f"(kept up to {dynamics['stick_rate_limit']:g})"
+            + ("" if timed else ": over within a sample, σ0 → ∞ in time (static)")
         )
-        if dynamics["chosen"] == "none" and seen and gain > 0 and math.isfinite(t):
-            lines.append(  # the windows' blind spot (docs/results.md: a LuGre spindle)
-                "  LuGre predicted better, though not by 2 σ, with bristles the encoder sees: "
-                'if the machine may be dynamic, train once with model.dynamic = "lugre" and '
-                "compare the two on validation data"
-            )
+    if dynamics["chosen"] != "none" or not seen or not gain > 0 or not math.isfinite(t):
+        return lines
+    if not timed and t > dynamics["t_min"]:  # the record is too slow for these bristles
+        lines.append(
+            "  LuGre predicted better, with bristles that settle within a sample: if the "
+            "machine may be dynamic, record it faster, or train once with model.dynamic = "
+            '"lugre" and compare the two on validation data'
+        )
+    elif timed:  # the windows' blind spot (docs/results.md: a LuGre spindle)
+        lines.append(
+            "  LuGre predicted better, though not by 2 σ, with bristles the encoder sees: "
+            'if the machine may be dynamic, train once with model.dynamic = "lugre" and '
+            "compare the two on validation data"
+        )
     return lines
