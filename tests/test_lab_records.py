@@ -139,6 +139,33 @@ def test_gaps_and_empty_fields_become_segments_named_by_line(tmp_path, record) -
         load_segments(jitter, columns=cols, **units)
 
 
+def test_a_row_of_units_under_the_names_joins_them(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A scope or PLC export writes its units in a row of their own: ``Zeit;Strom;Winkel``
+    over ``[ms];[A];[deg]``. The row is joined to the names (``Zeit [ms]``), so it reads as the
+    file with units in the header; rows and lines are counted below it; a row of numbers, or of
+    words that are not short units, stays a data row (and is refused as before)."""
+    german = _german(tmp_path / "one.csv", record, drop=set(range(1200, 1210)))
+    head, *body = german.read_bytes().decode("utf-8").split("\r\n")
+    two = tmp_path / "two.csv"
+    two.write_text("\r\n".join(["Zeit;Strom;Winkel", "[ms];(A);deg", *body]), encoding="utf-8")
+    cols = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}
+    units = {"time_unit": "ms", "position_unit": "deg"}
+    a, notes_a = load_segments(german, columns=cols, **units)
+    b, notes_b = load_segments(two, columns=cols, **units)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.q.numpy(), y.q.numpy())
+        np.testing.assert_array_equal(x.t.numpy(), y.t.numpy())
+    assert "after line 1201 (10 samples)" in notes_a[0] and "after line 1202" in notes_b[0]
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", "two.csv", "--c-m", "0.8"]) == 0
+    assert Config.load(tmp_path / "two.toml").data.columns == cols
+    capsys.readouterr()
+    words = tmp_path / "words.csv"
+    words.write_text("t;u;q\nzero;one point five;two\n0;1;2\n")
+    with pytest.raises(TorchfricError, match=r"line 2: 'zero' in column 't' is not a number"):
+        load_experiment(words)
+
+
 # ------------------------------------------------------------------------------- init, check
 def test_init_and_check_a_german_lab_file(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
     monkeypatch.chdir(tmp_path)

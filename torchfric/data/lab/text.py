@@ -1,7 +1,8 @@
 """CSV text as lab software and drives write it: `read_text_table`.
 
 The header line (the first that is neither blank nor a ``#`` comment) and up to `_SNIFF_ROWS`
-data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
+data lines decide the format (a row of units right under the names, ``[ms];[V];[Inc]``, is
+joined to them: ``Zeit [ms]``, which `torchfric.data.units.split_unit` reads): the delimiter is the first of tab, ``;``, ``,`` and white space
 that splits the header and every sniffed line into the same number (≥ 2) of fields; the
 decimal separator is a comma when the delimiter is not one and a sniffed field is a number
 written with a comma (``1,25``). The body is then read by pandas' C parser (`pandas.read_csv`,
@@ -24,6 +25,7 @@ import numpy as np
 from ...errors import TorchfricError, shorten
 from ..convert import _one_line
 from ..guards import _MEMORY_FIX
+from ..units import UNIT_ALIASES
 
 __all__ = ["CSV_FIX", "MAX_LINE", "RowLines", "TextFormat", "read_text_table", "sniff_format"]
 
@@ -87,8 +89,9 @@ def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
     )
 
 
-def _head(path: pathlib.Path) -> tuple[int, str, list[str]]:
-    """(index, text) of the header line and up to `_SNIFF_ROWS` data lines after it."""
+def _head(path: pathlib.Path) -> tuple[int, str, list[str], int]:
+    """(index, text) of the header line, up to `_SNIFF_ROWS` data lines after it and the
+    index of the first of them."""
     with path.open("rb") as f:
         head = f.read(_HEAD_BYTES)
     if not head:
@@ -101,6 +104,7 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str]]:
         )
     header: tuple[int, str] | None = None
     rows: list[str] = []
+    first = -1
     with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
         for i, line in enumerate(iter(lambda: f.readline(MAX_LINE), "")):
             if len(line) >= MAX_LINE and not line.endswith("\n"):
@@ -114,6 +118,7 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str]]:
             if header is None:
                 header = i, line.rstrip("\r\n")
             else:
+                first = i if first < 0 else first
                 rows.append(body.split("#")[0].rstrip())
                 if len(rows) >= _SNIFF_ROWS:
                     break
@@ -121,7 +126,7 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str]]:
         raise TorchfricError(
             f"{path}: no header line; the first line must name columns, e.g. t,u,q"
         )
-    return header[0], header[1], rows
+    return header[0], header[1], rows, first
 
 
 def _split(line: str, delimiter: str, *, header: bool = False) -> list[str]:
@@ -153,7 +158,7 @@ def _sniff(path: pathlib.Path, header: str, rows: list[str]) -> tuple[str, list[
 def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
     """How the CSV text at `path` is written, and its column names (the header's fields)."""
     try:
-        header_at, header, rows = _head(path)
+        header_at, header, rows, first = _head(path)
     except UnicodeDecodeError as exc:
         raise _not_utf8(path, exc) from None
     except OSError as exc:
@@ -171,9 +176,42 @@ def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
         raise TorchfricError(
             f"{path}: header {shorten(str(names))} has empty or repeated column names"
         )
+    units = _units_row(rows[0], delimiter, len(names)) if rows else None
+    if units is not None:  # a row of units under the names: "Zeit" over "[ms]" is "Zeit [ms]"
+        names = [f"{n} [{u}]" if u else n for n, u in zip(names, units, strict=True)]
+        rows, header_at = rows[1:], first
     fields = [f for r in rows for f in _split(r, delimiter)]
     comma = delimiter != "," and any(_COMMA_NUMBER.match(f) for f in fields)
     return TextFormat(delimiter, "," if comma else ".", header_at + 1), names
+
+
+_UNIT = re.compile(r"^[\[(]?\s*([^\d\s\[\]()][^\[\]()]{0,15}?)?\s*[\])]?$")
+
+
+def _units_row(row: str, delimiter: str, columns: int) -> list[str] | None:
+    """The units of a row that lab software (a scope export, a PLC logger) writes under the
+    column names — ``[ms];[V];[Inc]``, ``s,V,counts`` — with their brackets taken off (an empty
+    field: no unit); None when `row` is a data row: it has a number in it, a field that is not a
+    short word, or neither a bracketed field nor a unit torchfric knows (`UNIT_ALIASES`)."""
+    fields = _split(row, delimiter)
+    if len(fields) != columns:
+        return None
+    units, known = [], False
+    for f in fields:
+        m = None if _is_number(f) else _UNIT.match(f)
+        if m is None:
+            return None
+        units.append((m.group(1) or "").strip())
+        known |= f[:1] in "[(" or units[-1].lower() in UNIT_ALIASES
+    return units if known else None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text.replace(",", "."))
+    except ValueError:
+        return text.lower() in ("nan", "")
+    return True
 
 
 def read_text_table(path: pathlib.Path) -> tuple[dict[str, np.ndarray], TextFormat, RowLines]:
