@@ -235,14 +235,20 @@ class PEMCovariance:
     def std(self) -> Tensor:
         return torch.diagonal(self.cov).clamp_min(0.0).sqrt()
 
+    @property
+    def held(self) -> Tensor:
+        """`(k,)` bool: the entries held out of the inverse (at their floor or as a step,
+        `held_entries`), as `identifiability` names them."""
+        gone = {*self.identifiability.held, *self.identifiability.steep}
+        return torch.tensor([n in gone for n in self.names], dtype=torch.bool)
+
     def determined(self, offset: Tensor) -> Tensor:
         """`offset` (estimation coordinates) along the directions this information determines
-        only, ``I⁺ I offset`` (`_inverse`: the entries held at a bound or as a step and the
-        near-null directions out). Along the others the σ are 0 by construction (they are
-        reported by `identifiability` instead), and a distance between two estimates there is
-        where an optimiser wandered on a flat likelihood, not an error of the estimate."""
-        gone = set(self.identifiability.held) | set(self.identifiability.steep)
-        held = torch.tensor([n in gone for n in self.names], dtype=torch.bool)
+        only: ``I⁺ I offset`` over the free entries (`_inverse`: near-null directions out),
+        0 on the `held` ones. Along those the σ are 0 by construction (`identifiability`
+        reports them instead), and a distance between two estimates there is where an optimiser
+        wandered on a flat likelihood, not an error of the estimate."""
+        held = self.held
         offset = torch.where(held, 0.0, torch.as_tensor(offset, dtype=self.information.dtype))
         return _inverse(self.information, held) @ (self.information @ offset)
 

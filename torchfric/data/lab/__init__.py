@@ -1,7 +1,8 @@
 """Records as lab software and drives write them: CSV text in any common dialect (`text`:
 the delimiter and decimal separator sniffed, rows named by their line in the file), and
 records with holes or wrapping positions (`segments`: gaps and NaN rows cut a record into
-segments; wraps of a single-turn encoder found; a sample counter read as time). `torchfric.data.readers` uses both."""
+segments; wraps of a single-turn encoder found; a sample counter read as time).
+`torchfric.data.readers` uses both."""
 
 from .segments import (
     COUNTER_NAMES,
