@@ -166,6 +166,16 @@ def test_a_row_of_units_under_the_names_joins_them(tmp_path, record, monkeypatch
         load_experiment(words)
 
 
+def test_a_drives_german_names_for_the_actual_position_are_read_as_q(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Drive software names the measured position "Lageistwert" (or "Istlage"); a user walk's
+    scope export stopped at "cannot tell which column is q"."""
+    from torchfric.app.commands.columns import map_columns
+
+    for name in ("Lageistwert [Inc]", "Istlage", "Positionsistwert (mm)"):
+        table = {"Zeit [s]": np.zeros(3), "Stellgröße [V]": np.zeros(3), name: np.zeros(3)}
+        assert map_columns(table, {}, tmp_path / "x.csv", False)["q"] == name
+
+
 # ------------------------------------------------------------------------------- init, check
 def test_init_and_check_a_german_lab_file(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
     monkeypatch.chdir(tmp_path)

@@ -74,6 +74,7 @@ ALIASES: dict[str, tuple[str, ...]] = {
           "corrente", "coppia", "ingresso"),
     "q": ("q", "pos", "position", "theta", "th", "angle", "phi", "qm", "x", "encoder", "enc",
           "winkel", "drehwinkel", "lage", "weg", "istposition", "istwinkel", "geber",
+          "lageistwert", "istlage", "positionsistwert",
           "posicion", "angulo", "posizione", "angolo"),
     "qdot": ("qdot", "q_dot", "qd", "dq", "dqdt", "velocity", "vel", "speed", "omega",
              "thetadot", "theta_dot", "dtheta", "xdot", "x_dot", "geschwindigkeit",
