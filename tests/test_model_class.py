@@ -18,6 +18,7 @@ than a count through a reversal, so the static model is kept.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import pathlib
@@ -35,9 +36,10 @@ from torchfric.data.experiment import Experiment, make_experiment
 from torchfric.data.readers import save_csv
 from torchfric.data.rig import RigParameters, excitation, rig_experiment
 from torchfric.errors import TorchfricError
-from torchfric.estimators.passes import prepared
+from torchfric.estimators.ekf import EKFState, FilterFailure, make_propagator, make_step, run_pass
+from torchfric.estimators.passes import initial_belief, measurements, prepared
 from torchfric.estimators.prefit import prefit
-from torchfric.estimators.selection import window_errors
+from torchfric.estimators.selection import filtered_states, window_errors
 from torchfric.estimators.settings import EKFTuning
 from torchfric.estimators.sizing import HOLDOUT, compare_dynamics, held_out_heads
 from torchfric.models.arm import ArmModel
@@ -271,6 +273,65 @@ def test_window_errors_of_the_true_model_on_exact_data_vanish() -> None:
     assert float(wrong.mean().sqrt()) > 100 * float(right.mean().sqrt())
 
 
+def _augmented_states(model: ArmModel, theta: torch.Tensor, exp: Experiment,
+                      tuning: EKFTuning, firsts: list[int]) -> torch.Tensor:  # fmt: skip
+    """The filtered states at `firsts` by the augmented filter with ``P_θθ = 0`` and no process
+    noise on θ, stretch by stretch through `run_pass` (how `window_errors` found them before)."""
+    k, s = model.num_parameters, model.state_size
+    Q, P0_xx, H, R = tuning.matrices(k, s)
+    Q = Q * 0.1
+    Q[s:, s:] = 0.0
+    R = R * 10.0
+    step = make_step(make_propagator(model, tuning.substeps), compile=tuning.compile)
+    u, y = exp.u.to(torch.float64), measurements(exp, tuning.measure)
+    dt = torch.tensor(exp.dt, dtype=torch.float64)
+    x, P = initial_belief(exp, theta[None], torch.zeros(1, k, k, dtype=torch.float64), P0_xx)
+    state, out, last = EKFState(x[0], P[0]), [], 0
+    for a in firsts:
+        state, _ = run_pass(state, u[last : a + 1], y[last : a + 1], dt, Q, H, R, step,
+                            continuing=last > 0)  # fmt: skip
+        out.append(state.x[:s])
+        last = a
+    return torch.stack(out)
+
+
+@pytest.mark.parametrize("measure", ["both", "position"])
+def test_filtered_states_are_the_augmented_filters_bit_for_bit(
+    static_record: Experiment, lugre_record: Experiment, measure: str
+) -> None:
+    """`filtered_states` (the states-only fixed-θ step, one pass, per-sample outputs) against
+    the augmented filter run stretch by stretch, for a static and a LuGre model on both
+    records: equal to the last bit."""
+    given = (
+        EKFTuning(measure=measure) if measure == "both" else EKFTuning(measure=measure, r=[1e-8])
+    )
+    for exp in (static_record, lugre_record):
+        for model in _starts(exp):
+            tuning = prepared([exp], given, model.num_parameters, "test")[1]
+            firsts = list(range(exp.n - 3000, exp.n - 50, 50))
+            got = filtered_states(model, model.get_theta(), exp, tuning, q_scale=0.1,
+                                  r_scale=10.0, samples=firsts[-1] + 1)  # fmt: skip
+            assert got.shape == (firsts[-1] + 1, model.state_size)
+            want = _augmented_states(model, model.get_theta(), exp, tuning, firsts)
+            assert torch.equal(got[firsts], want)
+
+
+def test_filtered_states_name_the_sample_where_the_filter_fails(
+    static_record: Experiment,
+) -> None:
+    """An inertia 1e-9 of the start's makes the explicit step unstable: the generated step and
+    the eager one stop at the same sample, the first whose belief is not finite."""
+    model = _starts(static_record)[0]
+    tuning = prepared([static_record], EKFTuning(), model.num_parameters, "test")[1]
+    theta = model.get_theta().clone()
+    theta[model.theta_names.index("inertia")] += math.log(1e-9)
+    with pytest.raises(FilterFailure) as failed:
+        filtered_states(model, theta, static_record, tuning)
+    with pytest.raises(FilterFailure) as eager:
+        filtered_states(model, theta, static_record, dataclasses.replace(tuning, compile=False))
+    assert 0 < failed.value.sample == eager.value.sample < 100
+
+
 def test_a_record_too_short_to_hold_a_window_out_is_a_one_line_error(
     static_record: Experiment,
 ) -> None:
@@ -401,7 +462,10 @@ def test_a_long_record_is_identified_on_excerpts_and_scored_on_all_its_held_out_
     starts = [round(float(p.t[0]) / 1e-3) for p in pieces[:-1]]
     assert [p.n for p in pieces[:-1]] == [length] * COMPARE_PIECES
     assert starts[0] == 0 and starts[-1] + length == head  # within the identification part
-    assert max(abs(b - a - (head - length) / 3) for a, b in zip(starts[:-1], starts[1:], strict=True)) <= 1
+    assert (
+        max(abs(b - a - (head - length) / 3) for a, b in zip(starts[:-1], starts[1:], strict=True))
+        <= 1
+    )
     assert sum(p.n for p in pieces[:-1]) <= (1 - HOLDOUT) * 100_000
     row = {"dynamic": "none", "parameters": 8, "rmse_q": 1e-3, "bic": -1.0, "chosen": True}
     result = {"chosen": "none", "windows": 9, "window_seconds": 0.05, "holdout": 0.3,

@@ -18,19 +18,21 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from ..accel import Step, compile_step, iter_chunks, step_key, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import auto_substeps, simulate
-from .ekf import EKFState, make_propagator, make_step, run_pass
+from .ekf import EKFState, FilterFailure, healthy, make_fixed_theta_step, update
 from .metrics import fit_percent_batch
-from .passes import initial_belief, measurements
+from .passes import measurements, state_belief
 from .settings import EKFTuning
 
 __all__ = [
     "simulate_members",
     "select_by_fit",
     "window_errors",
+    "filtered_states",
 ]
 
 # Windows simulated in one batch by `window_errors`, always this many (the last batch repeats its
@@ -168,35 +170,17 @@ def window_errors(
     makes a whole-record simulation of a position-loop record meaningless after seconds.
     """
     f64 = torch.float64
-    k = model.num_parameters
-    s = model.state_size
-    Q, P0_xx, H, R = tuning.matrices(k, s)
-    Q = Q * q_scale
-    Q[s:, s:] = 0.0
-    R = R * r_scale
-    flow = make_propagator(model, tuning.substeps)
-    step_fn = make_step(flow, compile=tuning.compile)  # the record up to the first window
-    per_window = make_step(flow, compile=tuning.compile, chunk=window)  # one unpadded call each
-    u = exp.u.to(f64)
-    y = measurements(exp, tuning.measure)
-    dt = torch.tensor(exp.dt, dtype=f64)
-    x, P = initial_belief(exp, theta[None].to(f64), torch.zeros(1, k, k, dtype=f64), P0_xx)
-    state, _ = run_pass(EKFState(x[0], P[0]), u[: start + 1], y[: start + 1], dt, Q, H, R,
-                        step_fn, theta_bound=tuning.theta_bound)  # fmt: skip
     firsts = list(range(start, exp.n - window, window))
     if not firsts:
         raise TorchfricError(
             f"experiment {exp.name!r}: no window of {window} samples after sample {start}"
         )
-    x0 = []
-    for a in firsts:
-        if a > start:
-            state, _ = run_pass(state, u[a - window : a + 1], y[a - window : a + 1], dt, Q, H, R,
-                                per_window, theta_bound=tuning.theta_bound, continuing=True)  # fmt: skip
-        x0.append(state.x[:s])
+    kw = {"q_scale": q_scale, "r_scale": r_scale, "samples": firsts[-1] + 1}
+    starts = filtered_states(model, theta, exp, tuning, **kw)[firsts]
+    u = exp.u.to(f64)
     idx = torch.tensor(firsts)[None, :] + torch.arange(window + 1)[:, None]  # (window+1, W)
     t = exp.t.to(f64)[: window + 1] - exp.t[0]
-    q, starts = exp.q.to(f64), torch.stack(x0)
+    q = exp.q.to(f64)
     out = []
     for b in range(0, len(firsts), WINDOW_BATCH):  # each window is its own simulation
         take = torch.arange(b, b + WINDOW_BATCH).clamp(max=len(firsts) - 1)  # last: repeated
@@ -205,3 +189,85 @@ def window_errors(
         err = sim[1:, :, 0] - q[cols[1:]]
         out.append((err * err).mean(dim=0)[: len(firsts) - b])
     return torch.cat(out)
+
+
+@torch.no_grad()
+def filtered_states(
+    model: ArmModel,
+    theta: Tensor,
+    exp: Experiment,
+    tuning: EKFTuning,
+    *,
+    q_scale: float = 1.0,
+    r_scale: float = 1.0,
+    samples: int | None = None,
+) -> Tensor:
+    """`(n, s)` the filtered states ``x̂(t|t)`` of the first `samples` (all by default) of `exp`
+    (q, q̇ and a dynamic model's z) by the filter with θ held at `theta`
+    (`make_fixed_theta_step`, `tuning`'s Q and R times `q_scale` and `r_scale`): one pass, the
+    states the per-sample outputs of the generated step, as the prediction-error stage's
+    innovations are. The augmented filter with ``P_θθ = 0`` and no process noise on θ gives the
+    same states bit for bit (tested).
+
+    Raises:
+        FilterFailure: the filter failed (the first bad sample; the belief at the start of the
+            call that met it).
+    """
+    f64 = torch.float64
+    k, s = model.num_parameters, model.state_size
+    Q, P0_xx, H, R = tuning.fixed_theta_matrices(k, s)
+    Q, R = (Q * q_scale)[None], (R * r_scale)[None]
+    n_all = exp.n if samples is None else samples
+    u, y = exp.u.to(f64)[:n_all], measurements(exp, tuning.measure)[:n_all]
+    x, P = state_belief(exp, 1, P0_xx)
+    first, inn = update(EKFState(x[0], P[0]), y[0], H, R[0])
+    if not bool(healthy(first, inn, torch.tensor(math.inf, dtype=f64), s)):
+        raise FilterFailure(0, "the first measurement update failed", EKFState(x[0], P[0]))
+    x, P = first.x[None], first.P[None]
+    out = torch.empty(n_all, s, dtype=f64)
+    out[0] = x[0]
+    step = _state_step(model, tuning)
+    consts = (torch.tensor(exp.dt, dtype=f64), theta[None].to(f64), Q, H, R,
+              torch.tensor(math.inf, dtype=f64))  # fmt: skip
+    if step.chunk is not None:
+        for i, n, xs, valid in iter_chunks((u[:-1], y[1:]), step.size):
+            before = EKFState(x[0], P[0])
+            (x, P), (xt, ok) = step.chunk((x, P), xs, valid, consts)
+            if not bool(ok[:n].all()):
+                bad = int((~ok[:n].reshape(n, -1).all(1)).nonzero()[0, 0])
+                raise FilterFailure(1 + i + bad, "the fixed-θ filter became unhealthy", before)
+            out[1 + i : 1 + i + n] = xt[:n, 0]
+    else:
+        for j in range(1, n_all):
+            before = EKFState(x[0], P[0])
+            x, P, xt, ok = step(x, P, u[j - 1], y[j], *consts)
+            if not bool(ok.all()):
+                raise FilterFailure(j, "the fixed-θ filter became unhealthy", before)
+            out[j] = xt[0]
+    return out
+
+
+def _state_step(model: ArmModel, tuning: EKFTuning) -> Step:
+    """The fixed-θ step (`make_fixed_theta_step`) with the new states as per-sample outputs,
+    made once per model (`_STATE_STEPS`)."""
+    key = (structure_key(model), tuning.substeps, tuning.compile)
+    if key not in _STATE_STEPS:
+        batched = make_fixed_theta_step(model, tuning.substeps)
+
+        def fn(x, P, u, y, *consts):  # type: ignore[no-untyped-def]
+            x1, P1, _e, _nis, _ll, ok = batched(x, P, u, y, *consts)
+            return x1, P1, x1.clone(), ok
+
+        members = (False, True, True, False, True, False)  # dt, θ, Q, H, R, bound
+        step = (
+            compile_step(fn, carry=2, size=STATE_CHUNK, members=True, member_consts=members,
+                         key=step_key("fixed-θ states", batched.key))  # type: ignore[attr-defined]
+            if tuning.compile else Step(fn)
+        )  # fmt: skip
+        _STATE_STEPS.clear()
+        _STATE_STEPS[key] = step
+    return _STATE_STEPS[key]
+
+
+STATE_CHUNK = 8192  # samples per call of `filtered_states`' generated step
+_STATE_STEPS: dict = {}
