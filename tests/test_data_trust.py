@@ -309,6 +309,27 @@ def test_input_clipped_mildly_or_stepped_is_not_flagged() -> None:
     assert data_warnings(exp) == []
 
 
+def test_a_record_that_starts_and_ends_at_rest_is_not_a_clip() -> None:
+    """A logger started before the test and stopped after it: u exactly 0 for the first and
+    last 3 % of the samples of an input that never goes negative, then a ramp up. That rest is
+    no clip (a user walk's validation segments drew the warning); the same input clipped at 0
+    inside the record still is."""
+    n = 10_000
+    t = np.arange(n) * 1e-3
+    rng = np.random.default_rng(1)
+    phase = np.clip((np.arange(n) - 300) / (n - 600), 0.0, 1.0)
+    u = np.sin(np.pi * phase) * (1.0 + 0.3 * np.sin(40 * np.pi * phase)) + 0.01 * rng.random(n)
+    u[:300] = u[-300:] = 0.0  # rises from rest gradually, and falls back to it
+    q = np.cumsum(u) * 1e-3
+    assert data_warnings(make_experiment(t, u, q, name="rest")) == []
+    # a unipolar amplifier clipping a command that dips below 0, inside the record
+    clipped = np.maximum(np.sin(np.arange(n) * 0.004) + 0.3, 0.0) + 0.01 * rng.random(n)
+    clipped[clipped < 0.01] = 0.0
+    clipped[:300] = clipped[-300:] = 0.0
+    (text,) = data_warnings(make_experiment(t, clipped, q, name="clip"))
+    assert text.startswith("clip: the input u sits at its exact minimum 0 in ")
+
+
 def test_rig_record_with_t_in_milliseconds_is_flagged() -> None:
     a = _rig()
     exp = make_experiment(a["t"] * 1000, a["u"], a["q"], name="ms")

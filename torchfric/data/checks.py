@@ -54,6 +54,12 @@ def _saturation_warnings(exp: Experiment) -> list[str]:
     out = []
     for which, value in (("minimum", lo), ("maximum", hi)):
         at = u == value
+        # a run at the limit that opens or closes the record is the input at rest before or
+        # after the test (a logger started early), not a clip: the samples inside count
+        inside = np.flatnonzero(~at)
+        if not inside.size:
+            continue
+        at[: inside[0]] = at[inside[-1] + 1 :] = False
         count = int(at.sum())
         if count <= _SATURATION_FRACTION * u.size:
             continue
@@ -117,8 +123,9 @@ def data_warnings(
 
     Pure: reads `exp` only. Empty list when nothing is suspicious. Checks:
 
-    - saturation: u sits at its exact minimum or maximum in more than 1 % of the samples and
-      reaches that value gradually (the samples next to those runs lie, in the median, within
+    - saturation: u sits at its exact minimum or maximum in more than 1 % of the samples (not
+      counting a run at that value that opens or closes the record: the input at rest before
+      or after the test) and reaches that value gradually (the samples next to those runs lie, in the median, within
       25 % of u's range of it; u has at least 20 distinct values). Step and PRBS inputs, which
       jump onto their few levels, are not flagged.
     - time units: a sample time of at least 0.05 s (≤ 20 Hz) that contradicts the data: a
