@@ -6,11 +6,17 @@ steps per second end to end (the ensemble's member-samples filtered ÷ the wall 
     python benchmarks/long_record.py                      # about 10 minutes on 2 cores
     python benchmarks/long_record.py --duration 120       # a 2-minute record, for a quick look
     python benchmarks/long_record.py --modes quiet --json after.json
+    python benchmarks/long_record.py --modes quiet --dynamic auto --before 260a5ad --rounds 2
 
 The record is the user-style Stribeck axis (`torchfric.data.axis`, seed 1), written once as a
 CSV (``t,u,q``, 32–47 MB for 20 minutes) into ``--cache`` and reused: simulating it takes about a
 minute. The config is what ``torchfric init RECORD --c-m 1`` writes (the default model: tanh(3),
-the 9-filter ensemble, up to 30 passes), the whole record identified, no validation record.
+the 9-filter ensemble, up to 30 passes), the whole record identified, no validation record;
+``--dynamic`` sets ``model.dynamic`` (``none`` by default, the static class as measured before
+init wrote ``auto``; ``auto`` adds the comparison of both classes). With ``--before REF`` the
+same runs of that commit (``git archive``, its torchfric first on ``PYTHONPATH``) alternate
+with this tree's for ``--rounds`` rounds, and the table adds the largest relative difference of
+the two releases' parameters (0 where the run computed the same numbers).
 """
 
 from __future__ import annotations
@@ -27,6 +33,11 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
+
+from releases import checkout
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CLI = "import sys; from torchfric.app.cli import main; sys.exit(main())"
 
@@ -83,13 +94,11 @@ def _drain(fd: int, proc: subprocess.Popen[bytes]) -> bytes:
     return out
 
 
-def run(cfg: Path, mode: str, out: Path) -> dict[str, float]:
-    """One ``torchfric train`` in a fresh process: wall time, the child's peak RSS, and the
-    run's filter steps (from its ensemble.json or metrics.json)."""
-    # the static class, as measured before init wrote model.dynamic = "auto" (which adds a
-    # comparison of both classes on 70 % of the record, about 1.4 runs more)
+def run(cfg: Path, mode: str, out: Path, dynamic: str) -> dict[str, Any]:
+    """One ``torchfric train`` in a fresh process: wall time, the child's peak RSS, the run's
+    filter steps (from its ensemble.json or metrics.json) and its parameters."""
     args = [sys.executable, "-c", CLI, "train", str(cfg), "--out", str(out),
-            "--set", "model.dynamic=none"]  # fmt: skip
+            "--set", f"model.dynamic={dynamic}"]  # fmt: skip
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
     if mode == "terminal":  # stdin, stdout and stderr on a pty: bars are drawn
@@ -123,7 +132,15 @@ def run(cfg: Path, mode: str, out: Path) -> dict[str, float]:
         "filter_steps": steps,
         "steps_per_s": steps / wall,
         "bars_shown": shown,
+        "parameters": {k: v["value"] for k, v in metrics["parameters"].items()},
+        "comparison_s": (metrics.get("dynamics") or {}).get("seconds", 0.0),
+        "ensemble_s": ens["seconds"] if ens else 0.0,
     }
+
+
+def _rel(a: dict[str, float], b: dict[str, float]) -> float:
+    """The largest relative difference between two runs' parameters."""
+    return max(abs(a[k] - b[k]) / max(abs(a[k]), abs(b[k]), 1e-300) for k in a)
 
 
 def main() -> None:
@@ -132,32 +149,58 @@ def main() -> None:
     ap.add_argument("--modes", default="terminal,quiet", help="terminal, quiet or both")
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "torchfric_long")
     ap.add_argument("--json", type=Path, help="write the table's numbers here")
+    ap.add_argument("--dynamic", default="none", help="model.dynamic: none, lugre or auto")
+    ap.add_argument("--before", help="an earlier commit, measured alternately in the same run")
+    ap.add_argument("--rounds", type=int, default=1, help="runs per release and mode")
     a = ap.parse_args()
     a.cache.mkdir(parents=True, exist_ok=True)
     data = record(a.cache, a.duration)
     cfg = config(data, a.cache)
-    rows = {}
+    rows: dict[str, list[dict[str, Any]]] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for mode in a.modes.split(","):
-            # the peak RSS of RUSAGE_CHILDREN is the largest child's so far: the larger mode
-            # first would hide the other's, so each mode runs in a child of its own
-            child = [sys.executable, __file__, "--_one", mode, str(cfg), str(Path(tmp) / mode)]
-            rows[mode] = json.loads(subprocess.run(child, check=True, capture_output=True,
-                                                   text=True).stdout)  # fmt: skip
+        trees = {"this tree": ROOT}
+        if a.before:
+            trees[a.before] = checkout(a.before, Path(tmp))
+        for r in range(a.rounds):
+            for mode in a.modes.split(","):
+                for i, (name, tree) in enumerate(trees.items()):
+                    # the peak RSS of RUSAGE_CHILDREN is the largest child's so far: each run
+                    # goes in a child of its own, or a larger one would hide the next's
+                    out = Path(tmp) / f"{mode}_{r}_{i}"
+                    child = [sys.executable, __file__, "--_one", mode, str(cfg), str(out),
+                             a.dynamic]  # fmt: skip
+                    env = {**os.environ, "PYTHONPATH": str(tree)}
+                    done = subprocess.run(child, capture_output=True, text=True, env=env)
+                    if done.returncode:
+                        raise SystemExit(
+                            f"{name}, {mode}: {done.stdout[-2000:]}{done.stderr[-2000:]}"
+                        )
+                    rows.setdefault(f"{name}|{mode}", []).append(json.loads(done.stdout))
     n = sum(1 for _ in open(data)) - 1
-    print(f"{n:,} samples ({a.duration:g} s at 1 kHz), {cfg.name} as torchfric init wrote it")
-    print(f"{'mode':<10}{'wall time':>11}{'peak RSS':>11}{'filter steps/s':>16}  bars")
-    for mode, r in rows.items():
-        print(
-            f"{mode:<10}{r['wall_s']:>9.0f} s{r['peak_mib']:>7.0f} MiB"
-            f"{r['steps_per_s']:>16,.0f}  {'yes' if r['bars_shown'] else 'no'}"
+    print(f"{n:,} samples ({a.duration:g} s at 1 kHz), {cfg.name} as torchfric init wrote it, "
+          f"model.dynamic = {a.dynamic!r}")  # fmt: skip
+    print("| release | mode | wall time (each run) | of it: class comparison | ensemble's passes "
+          "| peak RSS | filter steps/s end to end | bars "
+          "| max rel. difference of the parameters to this tree's |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
+    for key, runs in rows.items():
+        name, mode = key.split("|")
+        mine = rows[f"this tree|{mode}"][0]["parameters"]
+        walls, comp, ens = (
+            " / ".join(f"{r[key]:.0f}" for r in runs)
+            for key in ("wall_s", "comparison_s", "ensemble_s")
         )
+        print(f"| {name} | {mode} | {walls} s | {comp} s | {ens} s "
+              f"| {max(r['peak_mib'] for r in runs):.0f} MiB "
+              f"| {max(r['steps_per_s'] for r in runs):,.0f} "
+              f"| {'yes' if runs[0]['bars_shown'] else 'no'} "
+              f"| {max(_rel(mine, r['parameters']) for r in runs):.1e} |")  # fmt: skip
     if a.json:
         a.json.write_text(json.dumps(rows, indent=2))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 5 and sys.argv[1] == "--_one":
-        print(json.dumps(run(Path(sys.argv[3]), sys.argv[2], Path(sys.argv[4]))))
+    if len(sys.argv) == 6 and sys.argv[1] == "--_one":
+        print(json.dumps(run(Path(sys.argv[3]), sys.argv[2], Path(sys.argv[4]), sys.argv[5])))
     else:
         main()

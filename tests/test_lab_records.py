@@ -84,6 +84,19 @@ def test_dialects_read_as_the_clean_csv(tmp_path, record, sep) -> None:  # type:
         np.testing.assert_array_equal(getattr(lab, key).numpy(), getattr(clean, key).numpy())
 
 
+def test_decimal_commas_after_rows_of_integers_are_read_as_such(tmp_path, record) -> None:  # type: ignore[no-untyped-def]
+    """A record that starts at rest (integers only in the first 50 rows the format is sniffed
+    from) and writes decimal commas once it moves: the sniffer reads on to the first fraction."""
+    rows = [f"{k};0;0" for k in range(300)]
+    rows += [f"{k};{u:.10g};{q:.12g}".replace(".", ",") for k, u, q in
+             zip(range(300, 300 + len(record["u"])), record["u"], record["q"], strict=True)]  # fmt: skip
+    path = tmp_path / "rest.csv"
+    path.write_text("Zeit [ms];u;q\n" + "\n".join(rows) + "\n")
+    lab = load_experiment(path, columns={"t": "Zeit [ms]"}, time_unit="ms")
+    np.testing.assert_allclose(lab.u.numpy()[300:], record["u"], rtol=1e-9, atol=0)  # 10 digits
+    np.testing.assert_allclose(lab.q.numpy()[300:], record["q"], rtol=1e-11, atol=1e-12)
+
+
 @pytest.mark.parametrize("suffix", [".txt", ".tsv", ".dat", ".TXT"])
 def test_text_tables_named_as_loggers_name_them_read_as_the_csv(tmp_path, record, suffix, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
     # A LabVIEW or oscilloscope export: tab-separated, units in the header, named .txt or .dat.
@@ -174,6 +187,63 @@ def test_a_drives_german_names_for_the_actual_position_are_read_as_q(tmp_path) -
     for name in ("Lageistwert [Inc]", "Istlage", "Positionsistwert (mm)"):
         table = {"Zeit [s]": np.zeros(3), "Stellgröße [V]": np.zeros(3), name: np.zeros(3)}
         assert map_columns(table, {}, tmp_path / "x.csv", False)["q"] == name
+
+
+def _stamped(path: pathlib.Path, r: dict[str, np.ndarray], stamp, sep: str = ",") -> pathlib.Path:  # type: ignore[no-untyped-def]
+    """The record with its time column written by `stamp(datetime)` (a logger's clock times)."""
+    import datetime
+
+    start = datetime.datetime(2026, 11, 28, 23, 59, 58, 500_000)
+    lines = [f"Timestamp{sep}u{sep}q"]
+    for t, u, q in zip(r["t"], r["u"], r["q"], strict=True):
+        when = start + datetime.timedelta(microseconds=round(t * 1e6))
+        number = f"{u:.10g}{sep}{q:.12g}"
+        lines.append(f"{stamp(when)}{sep}{number if sep == ',' else number.replace('.', ',')}")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "stamp", "sep"),
+    [
+        ("date and time", lambda w: w.isoformat(sep=" ", timespec="milliseconds"), ","),
+        ("date and time", lambda w: w.isoformat(timespec="microseconds") + "+01:00", ","),
+        ("day.month.year and time",
+         lambda w: w.strftime("%d.%m.%Y %H:%M:%S,") + f"{w.microsecond // 1000:03d}", ";"),
+        ("time of day", lambda w: w.strftime("%H:%M:%S.%f"), ";"),  # passes midnight
+    ],
+)  # fmt: skip
+def test_a_column_of_clock_times_reads_as_seconds_from_its_first_row(
+    tmp_path, record, kind, stamp, sep, monkeypatch, capsys
+) -> None:  # type: ignore[no-untyped-def]
+    """Loggers write the time as a date and a clock time; read as seconds from the first row,
+    to the nanosecond, it is the clean CSV's t (here across midnight), and init says so."""
+    from torchfric.data.lab import CLOCK_FORMATS, sniff_format
+
+    clean = load_experiment(_clean(tmp_path / "clean.csv", record))
+    path = _stamped(tmp_path / "stamped.csv", record, stamp, sep)
+    fmt = sniff_format(path)[0]
+    assert fmt.clock == ("Timestamp",) and kind in CLOCK_FORMATS
+    lab = load_experiment(path, columns={"t": "Timestamp"})
+    np.testing.assert_allclose(lab.t.numpy(), clean.t.numpy(), rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(lab.q.numpy(), clean.q.numpy())
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", path.name, "--c-m", "0.8", "--out", "stamped.toml"]) == 0
+    out = capsys.readouterr().out
+    assert "column 'Timestamp' holds clock times: read as seconds from its first row" in out
+    assert "t = 'Timestamp'" in out and "dt 0.001 s" in out
+
+
+def test_a_clock_time_in_another_format_is_named_by_line(tmp_path, record) -> None:  # type: ignore[no-untyped-def]
+    path = _stamped(tmp_path / "mixed.csv", record, lambda w: w.strftime("%H:%M:%S.%f"))
+    lines = path.read_text().splitlines()
+    lines[10] = "yesterday," + lines[10].split(",", 1)[1]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TorchfricError) as err:
+        load_experiment(path, columns={"t": "Timestamp"})
+    text = str(err.value)
+    assert "line 11: 'yesterday' in column 'Timestamp' is not a clock time written as the " \
+           "first row's ('23:59:58.500000')" in text and "\n" not in text  # fmt: skip
 
 
 # ------------------------------------------------------------------------------- init, check

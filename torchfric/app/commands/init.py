@@ -336,6 +336,9 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
         fmt = sniff_format(data)[0]
         if fmt.delimiter != "," or fmt.decimal != ".":
             plan.notes.append(f"{data.name} is {fmt.describe()}: read as such")
+        for name in fmt.clock:
+            plan.notes.append(f"column {name!r} holds clock times: read as seconds from its "
+                              "first row")  # fmt: skip
     if plan.time_unit != "s":
         plan.notes.append(
             f"t in {plan.time_unit} (column {plan.mapping['t']!r}): data.time_unit = "

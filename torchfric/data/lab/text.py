@@ -27,7 +27,15 @@ from ..convert import _one_line
 from ..guards import _MEMORY_FIX
 from ..units import UNIT_ALIASES
 
-__all__ = ["CSV_FIX", "MAX_LINE", "RowLines", "TextFormat", "read_text_table", "sniff_format"]
+__all__ = [
+    "CLOCK_FORMATS",
+    "CSV_FIX",
+    "MAX_LINE",
+    "RowLines",
+    "TextFormat",
+    "read_text_table",
+    "sniff_format",
+]
 
 _HEAD_BYTES = 1 << 16  # the binary-data check looks at the first 64 KiB
 MAX_LINE = 1 << 20  # no header or comment line is longer than 1 MiB
@@ -38,6 +46,8 @@ CSV_FIX = (
 )
 _DELIMITERS = {"\t": "tab", ";": "semicolon", ",": "comma", " ": "space"}
 _COMMA_NUMBER = re.compile(r"^[+-]?\d*,\d+(?:[eE][+-]?\d+)?$")
+_POINT_NUMBER = re.compile(r"^[+-]?\d*\.\d+(?:[eE][+-]?\d+)?$")
+_FURTHER_LINES = 200_000  # how far `_comma_further` reads for a number with a fraction
 # white space separates fields, but not a name from its unit: "Zeit [ms]" is one field
 _SPACED_FIELD = re.compile(r"[^\s\[(]+(?:\s*[\[(][^\])]*[\])])?|[\[(][^\])]*[\])]")
 
@@ -50,6 +60,7 @@ class TextFormat:
     delimiter: str
     decimal: str
     header_line: int
+    clock: tuple[str, ...] = ()  # columns of clock times (`CLOCK_FORMATS`), read as seconds
 
     def describe(self) -> str:
         """E.g. ``"semicolon-separated, decimal comma"``, for notes."""
@@ -182,7 +193,47 @@ def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
         rows, header_at = rows[1:], first
     fields = [f for r in rows for f in _split(r, delimiter)]
     comma = delimiter != "," and any(_COMMA_NUMBER.match(f) for f in fields)
-    return TextFormat(delimiter, "," if comma else ".", header_at + 1), names
+    if delimiter != "," and not comma and not any(_POINT_NUMBER.match(f) for f in fields):
+        comma = _comma_further(path, delimiter)  # the first rows: integers only (at rest)
+    first = _split(rows[0], delimiter) if rows else []
+    clock = tuple(n for n, f in zip(names, first, strict=False) if _clock_format(f))
+    return TextFormat(delimiter, "," if comma else ".", header_at + 1, clock), names
+
+
+# Clock times a logger writes in place of seconds, each with the substitution that makes it ISO
+# 8601 for pandas: a date and a time ("2026-11-28 09:15:02.001", "T" too, a zone allowed), a
+# European date ("28.11.2026 09:15:02,001") and a time of day alone ("09:15:02.001"); the
+# fraction of a second after a point or a comma.
+_FRACTION = r"(?:[.,]\d+)?"
+CLOCK_FORMATS = {
+    "date and time": (re.compile(rf"^(\d{{4}}-\d{{2}}-\d{{2}})[T ](\d{{1,2}}:\d{{2}}:\d{{2}}{_FRACTION})"
+                                 r"(Z|[+-]\d{2}:?\d{2})?$"), r"\1T\2\3"),
+    "day.month.year and time": (re.compile(rf"^(\d{{1,2}})\.(\d{{1,2}})\.(\d{{4}}) "
+                                           rf"(\d{{1,2}}:\d{{2}}:\d{{2}}{_FRACTION})$"),
+                                r"\3-\2-\1T\4"),
+    "time of day": (re.compile(rf"^(\d{{1,2}}:\d{{2}}:\d{{2}}{_FRACTION})$"), r"1970-01-01T\1"),
+}  # fmt: skip
+
+
+def _clock_format(text: str) -> str | None:
+    """The `CLOCK_FORMATS` name that `text` is written in, or None."""
+    return next((k for k, (rx, _) in CLOCK_FORMATS.items() if rx.match(text.strip())), None)
+
+
+def _comma_further(path: pathlib.Path, delimiter: str) -> bool:
+    """Whether the first number with a fraction in the file's first `_FURTHER_LINES` lines
+    (the sniffed ones held integers only, as a record that starts at rest does) is written
+    with a decimal comma."""
+    with path.open(encoding="utf-8-sig", errors="replace") as f:
+        for i, line in enumerate(f):
+            if i > _FURTHER_LINES:
+                break
+            for field in _split(line.split("#")[0], delimiter):
+                if _COMMA_NUMBER.match(field):
+                    return True
+                if _POINT_NUMBER.match(field):
+                    return False
+    return False
 
 
 _UNIT = re.compile(r"^[\[(]?\s*([^\d\s\[\]()][^\[\]()]{0,15}?)?\s*[\])]?$")
@@ -250,14 +301,46 @@ def _parse(path: pathlib.Path, names: list[str], fmt: TextFormat) -> np.ndarray:
     out = np.empty((len(frame), len(names)))
     for j, name in enumerate(names):
         col = frame[name]
-        values = pd.to_numeric(col, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+        clock = name in fmt.clock
+        if clock:
+            values = _clock_seconds(col)
+        else:
+            values = pd.to_numeric(col, errors="coerce").to_numpy(np.float64, na_value=np.nan)
         bad = np.flatnonzero(np.isnan(values) & col.notna().to_numpy())
         if bad.size:
             row = int(bad[0])
             line = RowLines(path, fmt.header_line).line(row)
+            what = (f"a clock time written as the first row's ({col.iloc[0]!r})" if clock
+                    else "a number")  # fmt: skip
             raise TorchfricError(
                 f"{path}: line {line}: {shorten(str(col.iloc[row]))!r} in column {name!r} is not "
-                f"a number ({bad.size} in all; read as {fmt.describe()}); write numbers only"
+                f"{what} ({bad.size} in all; read as {fmt.describe()}); write "
+                f"{'one format of clock time' if clock else 'numbers only'}"
             )
         out[:, j] = values
     return out
+
+
+def _clock_seconds(col) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """Seconds from the first row of a column of clock times (`CLOCK_FORMATS`, the first row's
+    format), to the nanosecond; NaN where a row is empty or not in that format. A time of day
+    that falls back by more than 12 hours has passed midnight: a day is added from there."""
+    import pandas as pd
+
+    text = col.astype("string").str.strip()
+    rx, iso = CLOCK_FORMATS[_clock_format(str(text.iloc[0])) or "date and time"]
+    iso_text = text.str.replace(rx, iso, regex=True).str.replace(",", ".", regex=False)
+    ok = text.str.match(rx).fillna(False).to_numpy(bool)
+    stamps = pd.to_datetime(iso_text.where(ok), format="ISO8601", errors="coerce", utc=True)
+    ns = stamps.to_numpy("datetime64[ns]").astype(np.int64)
+    good = ~np.isnat(stamps.to_numpy("datetime64[ns]"))
+    if not good.any():
+        return np.full(len(col), np.nan)
+    if iso.startswith("1970"):  # a time of day: midnight passed where it falls back by > 12 h
+        kept = ns[good]
+        day = 86_400 * 10**9
+        kept = kept + day * np.cumsum(np.r_[0, np.diff(kept) < -day // 2])
+        ns = ns.copy()
+        ns[good] = kept
+    seconds = (ns - ns[np.flatnonzero(good)[0]]) / 1e9
+    return np.where(good, seconds, np.nan)
