@@ -243,7 +243,8 @@ def test_a_clock_time_in_another_format_is_named_by_line(tmp_path, record) -> No
         load_experiment(path, columns={"t": "Timestamp"})
     text = str(err.value)
     assert "line 11: 'yesterday' in column 'Timestamp' is not a clock time written as the " \
-           "first row's ('23:59:58.500000')" in text and "\n" not in text  # fmt: skip
+           "first row's ('23:59:58.500000'); write one format of clock time (1 in all; read as " \
+           "comma-separated)" in text and "\n" not in text  # fmt: skip
 
 
 # ------------------------------------------------------------------------------- init, check

@@ -310,12 +310,15 @@ def _parse(path: pathlib.Path, names: list[str], fmt: TextFormat) -> np.ndarray:
         if bad.size:
             row = int(bad[0])
             line = RowLines(path, fmt.header_line).line(row)
-            what = (f"a clock time written as the first row's ({col.iloc[0]!r})" if clock
-                    else "a number")  # fmt: skip
+            n, how = bad.size, fmt.describe()
+            what = (
+                f"is not a clock time written as the first row's ({col.iloc[0]!r}); write one "
+                f"format of clock time ({n} in all; read as {how})"
+                if clock
+                else f"is not a number ({n} in all; read as {how}); write numbers only"
+            )
             raise TorchfricError(
-                f"{path}: line {line}: {shorten(str(col.iloc[row]))!r} in column {name!r} is not "
-                f"{what} ({bad.size} in all; read as {fmt.describe()}); write "
-                f"{'one format of clock time' if clock else 'numbers only'}"
+                f"{path}: line {line}: {shorten(str(col.iloc[row]))!r} in column {name!r} {what}"
             )
         out[:, j] = values
     return out
