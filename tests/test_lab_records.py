@@ -98,7 +98,9 @@ def test_decimal_commas_after_rows_of_integers_are_read_as_such(tmp_path, record
 
 
 @pytest.mark.parametrize("suffix", [".txt", ".tsv", ".dat", ".TXT"])
-def test_text_tables_named_as_loggers_name_them_read_as_the_csv(tmp_path, record, suffix, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+def test_text_tables_named_as_loggers_name_them_read_as_the_csv(
+    tmp_path, record, suffix, monkeypatch, capsys
+) -> None:  # type: ignore[no-untyped-def]
     # A LabVIEW or oscilloscope export: tab-separated, units in the header, named .txt or .dat.
     clean = load_experiment(_clean(tmp_path / "clean.csv", record))
     rows = [f"{t:.6f}\t{u:.10g}\t{q:.12g}" for t, u, q in
@@ -232,6 +234,27 @@ def test_a_column_of_clock_times_reads_as_seconds_from_its_first_row(
     out = capsys.readouterr().out
     assert "column 'Timestamp' holds clock times: read as seconds from its first row" in out
     assert "t = 'Timestamp'" in out and "dt 0.001 s" in out
+
+
+def test_a_loggers_names_for_its_clock_column_are_read_as_t(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """A logger heads its clock times "Datum/Zeit", "Date Time" or "Uhrzeit"; a user walk's
+    record stopped at "cannot tell which column is t"."""
+    from torchfric.app.commands.columns import map_columns
+
+    for name in (
+        "Datum/Zeit",
+        "Date/Time",
+        "Date Time",
+        "DateTime",
+        "Uhrzeit",
+        "Datum und Uhrzeit",
+    ):
+        table = {
+            name: np.zeros(3),
+            "Drehmoment-Sollwert [Nm]": np.zeros(3),
+            "Position [°]": np.zeros(3),
+        }
+        assert map_columns(table, {}, tmp_path / "x.csv", False)["t"] == name
 
 
 def test_a_clock_time_in_another_format_is_named_by_line(tmp_path, record) -> None:  # type: ignore[no-untyped-def]

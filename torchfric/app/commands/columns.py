@@ -65,7 +65,9 @@ _MIN_PART = 100  # samples in each part of a --split
 
 ALIASES: dict[str, tuple[str, ...]] = {
     "t": ("t", "time", "times", "timestamp", "sec", "secs", "seconds",
-          "zeit", "zeitstempel", "zeitpunkt", "temps", "tiempo", "tempo"),
+          "date", "datetime", "clock",  # a logger's clock times (`torchfric.data.lab`)
+          "zeit", "zeitstempel", "zeitpunkt", "datum", "uhrzeit",
+          "temps", "tiempo", "tempo"),
     "u": ("u", "input", "current", "i", "iq", "cmd", "command", "control", "torque", "tau",
           "force", "voltage", "volt", "pwm",
           "strom", "motorstrom", "sollstrom", "stellgrosse", "stellgroesse", "stellwert",
