@@ -356,6 +356,12 @@ def test_a_curve_that_pushes_the_axis_near_rest_is_named() -> None:
         a, b = (a, 0.5 * (a + b)) if odd(0.5 * (a + b)) > 0 else (0.5 * (a + b), b)
     assert low == pytest.approx(1e-5 * float(torch.quantile(v.abs(), 0.95)), rel=1e-2)
     assert high < a <= high * 1.03 and 'model.dynamic = "lugre"' in line
+    # after auto compared both classes and kept the static one, LuGre is not the advice
+    (kept,) = _active_friction(model([1760.0, 77.0], [-8.8, 12.0]), _v95([exp]), compared=True)
+    assert kept.split(": ")[:2] == line.split(": ")[:2] and "lugre" not in kept
+    assert kept.endswith("compared LuGre on these records and kept the static model, so below "
+                         "that speed the curve is the stick drawn, not friction: a simulation "
+                         "that starts from rest is pushed there")  # fmt: skip
     assert _active_friction(model([200.0, 20.0], [2.0, 4.0]), _v95([exp])) == []
     root = pathlib.Path(__file__).resolve().parents[1]
     rig = torchfric.load_checkpoint(root / "checkpoints" / "arm_tanh_ekf.pt")

@@ -63,13 +63,15 @@ def _v95(train: list[Experiment]) -> float:
     return found[0] if found else 0.0
 
 
-def _active_friction(final: ArmModel, speed: float) -> list[str]:
+def _active_friction(final: ArmModel, speed: float, compared: bool = False) -> list[str]:
     """Friction that drives the axis instead of braking it: the steady-state friction's odd
     part (offset and asymmetric slope are even) below zero somewhere in ``0 < q̇ <= speed``
     (the records' v95; beyond 0.1 % of its largest value, against rounding). A passive
     friction has ``F q̇ >= 0``; a static curve fitted to a record that sticks can draw the stick
     as a negative lobe near rest (a belt-driven stage of a user walk: −4.7 N below 2.4 mm/s,
-    where its static friction is +9 N), which simulates as a push at every start."""
+    where its static friction is +9 N), which simulates as a push at every start. Where `model.dynamic = "auto"` has compared
+    LuGre and kept the static model (`compared`), LuGre is not what to try: the line says the
+    curve there draws the stick."""
     if not speed > 0:
         return []
     v = torch.logspace(-5.0, 0.0, 501, dtype=torch.float64) * speed
@@ -79,11 +81,18 @@ def _active_friction(final: ArmModel, speed: float) -> list[str]:
     if not bool(low.any()):
         return []
     where = v[low]
+    advice = (
+        'model.dynamic = "auto" compared LuGre on these records and kept the static model, so '
+        "below that speed the curve is the stick drawn, not friction: a simulation that starts "
+        "from rest is pushed there"
+        if compared
+        else 'try model.dynamic = "lugre", whose bristles hold it'
+    )
     return [
         f"the friction curve pushes the axis instead of braking it at {float(where.min()):.3g} "
         f"<= |q̇| <= {float(where.max()):.3g} (down to {float(odd.min()):.3g}): friction there "
         "feeds energy in, which a real machine's cannot; a static curve fitted to a record that "
-        'sticks draws the stick this way: try model.dynamic = "lugre", whose bristles hold it'
+        f"sticks draws the stick this way: {advice}"
     ]
 
 
@@ -148,7 +157,8 @@ def result_warnings(
     out += _bound_warnings(cfg, final, inertia)
     out += missing_terms(cfg, final, train or [])
     v95 = _v95(train or [])
-    out += _active_friction(final, v95)
+    compared = (metrics.get("dynamics") or {}).get("chosen") == "none"
+    out += _active_friction(final, v95, compared)
     out += _uninformed(cfg, final, covariance, start, metrics)
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
