@@ -125,8 +125,8 @@ def data_warnings(
 
     - saturation: u sits at its exact minimum or maximum in more than 1 % of the samples (not
       counting a run at that value that opens or closes the record: the input at rest before
-      or after the test) and reaches that value gradually (the samples next to those runs lie, in the median, within
-      25 % of u's range of it; u has at least 20 distinct values). Step and PRBS inputs, which
+      or after the test) and reaches that value gradually (the samples next to those runs
+      lie, in the median, within 25 % of u's range of it; u has at least 20 distinct values). Step and PRBS inputs, which
       jump onto their few levels, are not flagged.
     - time units: a sample time of at least 0.05 s (≤ 20 Hz) that contradicts the data: a
       measured ``qdot`` 300-3000 times the finite difference of q (t in ms makes it 1000), or,

@@ -39,11 +39,18 @@ import torch
 from torch import Tensor
 from torch.func import vmap
 
-from ..accel import Step, compile_step, iter_chunks, step_key, structure_key
+from ..accel import Step, iter_chunks, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
-from .ekf import MEASUREMENTS, EKFState, make_fixed_theta_step, update
+from .ekf import (
+    FIXED_CHUNK,
+    MEASUREMENTS,
+    EKFState,
+    fixed_theta_chunks,
+    make_fixed_theta_step,
+    update,
+)
 from .ensemble import _first_sample, _keep_good
 from .observers import Callback
 from .passes import Filtering, measured_data, state_belief
@@ -237,9 +244,8 @@ def _first_update(x: Tensor, P: Tensor, y0: Tensor, H: Tensor, R: Tensor) -> tup
 
 
 def _fixed_theta_steps(model: ArmModel, tuning: EKFTuning) -> tuple[Step, Step]:
-    """The batched fixed-θ step (`make_fixed_theta_step`) with per-sample outputs (e, NIS, ℓ,
-    ok), and the same with the ensemble's masked bookkeeping (sums only, `_keep_good`), made
-    once per model (`_STEPS`)."""
+    """`make_fixed_theta_step` with per-sample outputs (e, NIS, ℓ, ok), and with the ensemble's
+    masked bookkeeping (sums only, `_keep_good`), made once per model (`_STEPS`)."""
     key = (structure_key(model), tuning.substeps, tuning.compile)
     if key not in _STEPS:
         batched = make_fixed_theta_step(model, tuning.substeps)
@@ -248,21 +254,15 @@ def _fixed_theta_steps(model: ArmModel, tuning: EKFTuning) -> tuple[Step, Step]:
             carry = (x, P, good, fail_at, sum_e2, sum_nis, loglik)
             return _keep_good(carry, j, *batched(x, P, u, y, *consts))
 
-        members = (False, True, True, False, True, False)  # dt, θ, Q, H, R, bound
         steps = tuple(
-            compile_step(fn, carry=carry, size=FIXED_CHUNK, members=True, member_consts=members,
-                         key=step_key(name, batched.key))  # type: ignore[attr-defined]
-            if tuning.compile else Step(fn)
+            fixed_theta_chunks(fn, batched, carry=carry, name=name, compile=tuning.compile)
             for fn, carry, name in ((batched, 2, "fixed-θ batch"), (masked, 7, "fixed-θ masked"))
-        )  # fmt: skip
+        )
         _STEPS.clear()
         _STEPS[key] = steps
     return _STEPS[key]
 
 
-# Samples per call of the fixed-θ steps' C (not the numbers): 8 filters over 1000 samples took
-# less than the 2 ms from which `torchfric.accel.native` splits members across the cores.
-FIXED_CHUNK = 8192
 _STEPS: dict[Any, tuple[Step, Step]] = {}  # the last model's fixed-θ steps (built once per run)
 Innovations = list[tuple[Tensor, Tensor]]  # per experiment e_t and S_t of one θ (`innovations`)
 

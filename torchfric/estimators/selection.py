@@ -18,12 +18,19 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from ..accel import Step, compile_step, iter_chunks, step_key, structure_key
+from ..accel import Step, iter_chunks, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import auto_substeps, simulate
-from .ekf import EKFState, FilterFailure, healthy, make_fixed_theta_step, update
+from .ekf import (
+    EKFState,
+    FilterFailure,
+    fixed_theta_chunks,
+    healthy,
+    make_fixed_theta_step,
+    update,
+)
 from .metrics import fit_percent_batch
 from .passes import measurements, state_belief
 from .settings import EKFTuning
@@ -258,16 +265,11 @@ def _state_step(model: ArmModel, tuning: EKFTuning) -> Step:
             x1, P1, _e, _nis, _ll, ok = batched(x, P, u, y, *consts)
             return x1, P1, x1.clone(), ok
 
-        members = (False, True, True, False, True, False)  # dt, θ, Q, H, R, bound
-        step = (
-            compile_step(fn, carry=2, size=STATE_CHUNK, members=True, member_consts=members,
-                         key=step_key("fixed-θ states", batched.key))  # type: ignore[attr-defined]
-            if tuning.compile else Step(fn)
-        )  # fmt: skip
+        step = fixed_theta_chunks(fn, batched, carry=2, name="fixed-θ states",
+                                  compile=tuning.compile)  # fmt: skip
         _STATE_STEPS.clear()
         _STATE_STEPS[key] = step
     return _STATE_STEPS[key]
 
 
-STATE_CHUNK = 8192  # samples per call of `filtered_states`' generated step
 _STATE_STEPS: dict = {}

@@ -413,8 +413,9 @@ def compare_dynamics(
     its windows predict better by more than `T_MIN` standard errors of the mean difference and
     its bristles travel between one position step and the records' span (`bristles_seen`)
     and ring slowly enough for the samples to see them (`bristles_timed`: the stuck axis's
-    `stick_rate` times the sample time at most `STICK_RATE_LIMIT`); otherwise (a tie, bristles the records cannot see or that never slide in them, or every
-    dynamic filter diverging) the static model, the simpler one, is. The windows see stiction
+    `stick_rate` times the sample time at most `STICK_RATE_LIMIT`); otherwise (a tie,
+    bristles the records cannot see or that never slide in them, or every dynamic filter
+    diverging) the static model, the simpler one, is. The windows see stiction
     as much as bristle dynamics: a static curve through zero cannot stick, so on machines with
     sharp stiction LuGre predicts better whatever its σ0, and a σ0 too stiff for the encoder to
     see, or whose transient is over within a sample, is the static limit σ0 → ∞

@@ -69,9 +69,9 @@ def _active_friction(final: ArmModel, speed: float, compared: bool = False) -> l
     (the records' v95; beyond 0.1 % of its largest value, against rounding). A passive
     friction has ``F q̇ >= 0``; a static curve fitted to a record that sticks can draw the stick
     as a negative lobe near rest (a belt-driven stage of a user walk: −4.7 N below 2.4 mm/s,
-    where its static friction is +9 N), which simulates as a push at every start. Where `model.dynamic = "auto"` has compared
-    LuGre and kept the static model (`compared`), LuGre is not what to try: the line says the
-    curve there draws the stick."""
+    where its static friction is +9 N), which simulates as a push at every start. Where
+    `model.dynamic = "auto"` has compared LuGre and kept the static model (`compared`), LuGre
+    is not what to try: the line says the curve there draws the stick."""
     if not speed > 0:
         return []
     v = torch.logspace(-5.0, 0.0, 501, dtype=torch.float64) * speed

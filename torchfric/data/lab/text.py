@@ -4,8 +4,9 @@ The header line (the first that is neither blank nor a ``#`` comment) and up to 
 data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
 that splits the header and every sniffed line into the same number (≥ 2) of fields; a row of
 units right under the names (``[ms];[V];[Inc]``) is joined to them (``Zeit [ms]``, which
-`torchfric.data.units.split_unit` reads); the decimal separator is a comma when the delimiter is not one and a sniffed field is a number
-written with a comma (``1,25``). The body is then read by pandas' C parser (`pandas.read_csv`,
+`torchfric.data.units.split_unit` reads); the decimal separator is a comma when the delimiter
+is not one and the first number with a fraction is written with a comma (``1,25``); a column
+of clock times (`CLOCK_FORMATS`) is read as seconds from its first row. The body is then read by pandas' C parser (`pandas.read_csv`,
 imported on use): quoted fields, a byte-order mark, ``#`` comments, blank lines, empty fields
 and ``NaN`` (both read as NaN, which `torchfric.data.lab.segments` drops) are its business.
 
@@ -335,8 +336,8 @@ def _clock_seconds(col) -> np.ndarray:  # type: ignore[no-untyped-def]
     iso_text = text.str.replace(rx, iso, regex=True).str.replace(",", ".", regex=False)
     ok = text.str.match(rx).fillna(False).to_numpy(bool)
     stamps = pd.to_datetime(iso_text.where(ok), format="ISO8601", errors="coerce", utc=True)
-    ns = stamps.to_numpy("datetime64[ns]").astype(np.int64)
-    good = ~np.isnat(stamps.to_numpy("datetime64[ns]"))
+    when = stamps.to_numpy("datetime64[ns]")
+    ns, good = when.astype(np.int64), ~np.isnat(when)
     if not good.any():
         return np.full(len(col), np.nan)
     if iso.startswith("1970"):  # a time of day: midnight passed where it falls back by > 12 h
