@@ -136,8 +136,8 @@ def emps_score(model: ArmModel) -> dict[str, Any]:
     train = load_experiment(folder / "DATA_EMPS.mat", columns=EMPS_COLUMNS)
     p = _params(model)
     return {
-        "test_rmse_mm": 1000 * score_benchmark(model, test, n_init=20).rms_q,
-        "train_rmse_mm": 1000 * score_benchmark(model, train, n_init=20).rms_q,
+        "test_rmse_mm": 1000 * score_benchmark(model, test, n_init=20, engine="compiled").rms_q,
+        "train_rmse_mm": 1000 * score_benchmark(model, train, n_init=20, engine="compiled").rms_q,
         "inertia": p["inertia"],
         "viscous": p.get("viscous", float("nan")),
         "offset": p.get("offset", 0.0),
@@ -207,7 +207,7 @@ def disc_score(model: ArmModel, input_delay: int = 0) -> dict[str, Any]:
     tail = load_experiment(
         path, columns={"q": "th"}, time_step=DISC["dt"], start=DISC["test_start"] - input_delay
     ).delay_input(input_delay)
-    s = score_benchmark(model, tail, n_init=DISC["n_init"], skip=DISC["skip"])
+    s = score_benchmark(model, tail, n_init=DISC["n_init"], skip=DISC["skip"], engine="compiled")
     p = _params(model)
     return {
         "test_rmse_rad": s.rms_q,
@@ -278,7 +278,8 @@ def print_table(results: dict[str, Any]) -> None:
         print("EMPS (test: DATA_EMPS_PULSES.mat, 1000·RMSE(qm[20:], ŷ[20:]) in mm)")
         print(
             f"{'model':<46}{'test mm':>9}{'train mm':>10}{'M kg':>9}{'b N·s/m':>10}"
-            f"{'offset N':>10}{'a N·s/m':>9}  friction N at q̇ = " + ", ".join(f"{v:+g}" for v in EMPS_V)
+            f"{'offset N':>10}{'a N·s/m':>9}  friction N at q̇ = "
+            + ", ".join(f"{v:+g}" for v in EMPS_V)
         )
         for name, r in results["emps"].items():
             if "missing" in r:

@@ -90,6 +90,9 @@ def test_score_benchmark_on_emps_is_a_simulation_from_the_window(shared_data: pa
         direct = simulate(arm, exp.t[19:], exp.u[19:], x0, substeps=2)
     assert score.rms_q == pytest.approx(rms(exp.q[20:], direct[1:, 0]), rel=1e-12)
     assert math.isnan(score.fit_qdot)  # the record has no velocity to score
+    fast = score_benchmark(arm, exp, n_init=20, substeps=2, engine="compiled")
+    assert fast.rms_q == pytest.approx(score.rms_q, rel=1e-12)
+    assert float((fast.states - score.states).abs().max()) < 1e-12
 
 
 # --------------------------------------------------------------------------- HSM150
