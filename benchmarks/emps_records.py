@@ -1,6 +1,6 @@
 """Are EMPS's two records the same machine? (issue 36, part 2: what a rule can reach)
 
-    python benchmarks/emps_records.py            # both tables, about 20 s
+    python benchmarks/emps_records.py            # both tables, about 15 s
     python benchmarks/emps_records.py --json out.json
 
 The benchmark identifies on ``DATA_EMPS.mat`` and tests on ``DATA_EMPS_PULSES.mat``: the same
@@ -13,7 +13,8 @@ measures how far that record's machine is from the test record's, in two ways.
    Butterworth at 100 Hz run forwards and backwards, central differences, as the published
    IDIM-LS recipe does) the drive force ``gtau·vir`` equals the friction at that speed. Printed
    per speed band and file, and per 6.2-s cycle of the profile, so that a change between the
-   records can be told from the spread within one.
+   records can be told from the spread within one; for the test record also with its force
+   pulse off and on.
 2. **How much of the test error a 1 % change of the drive explains.** Each committed EMPS
    checkpoint is scored by the benchmark's protocol (initial state from the first 20 samples,
    RMSE of q over the rest, mm) on both files with its drive gain c_m divided by 1 + k. The
@@ -63,7 +64,10 @@ def cruising(path: Path) -> dict[str, np.ndarray]:
     acc = np.gradient(v, dt)
     force = float(mat["gtau"].ravel()[0]) * mat["vir"].ravel()
     t = np.arange(q.size) * dt
-    return {"v": v, "force": force, "t": t, "steady": np.abs(acc) < STEADY}
+    rec = {"v": v, "force": force, "t": t, "steady": np.abs(acc) < STEADY}
+    if "pulses_N" in mat:  # the test record's force pulses, {0, 5}
+        rec["pulse"] = mat["pulses_N"].ravel() > 0
+    return rec
 
 
 def steady_forces(rec: dict[str, np.ndarray]) -> list[dict[str, Any]]:
@@ -77,7 +81,14 @@ def steady_forces(rec: dict[str, np.ndarray]) -> list[dict[str, Any]]:
             sel = band & (rec["t"] >= c * CYCLE) & (rec["t"] < (c + 1) * CYCLE)
             if sel.sum() > 50:
                 cycles.append(float(rec["force"][sel].mean()))
+        split = {}
+        if "pulse" in rec:  # the cruise force with the test's pulse off and on
+            split = {
+                "pulse_off": float(rec["force"][band & ~rec["pulse"]].mean()),
+                "pulse_on": float(rec["force"][band & rec["pulse"]].mean()),
+            }
         rows.append({
+            **split,
             "band": [lo, hi],
             "v": float(rec["v"][band].mean()),
             "force": float(rec["force"][band].mean()),
@@ -115,9 +126,9 @@ def print_forces(forces: dict[str, list[dict[str, Any]]]) -> None:
     print("Drive force gtau·vir [N] while cruising (|q̈| < 0.05 m/s²), per speed band (samples):")
     print()
     print(
-        "| speed band [m/s] | mean speed | identification record | test record | test − identification | per cycle, identification | per cycle, test |"
+        "| speed band [m/s] | mean speed | identification record | test record | test − identification | per cycle, identification | per cycle, test | test, pulse off / on |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for ident, test in zip(forces["identification"], forces["test"], strict=True):
         lo, hi = ident["band"]
         diff = test["force"] - ident["force"]
@@ -127,7 +138,8 @@ def print_forces(forces: dict[str, list[dict[str, Any]]]) -> None:
         print(
             f"| {lo:+.2f} … {hi:+.2f} | {ident['v']:+.4f} | {ident['force']:+.2f} ({ident['samples']}) | "
             f"{test['force']:+.2f} ({test['samples']}) | "
-            f"{diff:+.2f} ({rel:+.1f} % of its size) | {cyc_i} | {cyc_t} |"
+            f"{diff:+.2f} ({rel:+.1f} % of its size) | {cyc_i} | {cyc_t} | "
+            f"{test.get('pulse_off', math.nan):+.2f} / {test.get('pulse_on', math.nan):+.2f} |"
         )
     print()
 
