@@ -181,6 +181,6 @@ def test_position_unit_choices_are_the_schemas() -> None:
     """The parser spells the choices out (importing the schema would import torch for --help)."""
     parser = build_parser()
     (commands,) = [a for a in parser._actions if a.dest == "command"]
-    for name in ("evaluate", "simulate"):
+    for name in ("evaluate", "simulate", "init"):
         option = commands.choices[name]._option_string_actions["--position-unit"]
         assert tuple(option.choices) == tuple(POSITION_UNITS)

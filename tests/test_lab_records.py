@@ -315,6 +315,93 @@ def test_unwrapped_counts_need_their_resolution(tmp_path, record, monkeypatch, c
         Config.loads("", ["data.position_unit=counts"])
 
 
+def _turns(path: pathlib.Path, r: dict[str, np.ndarray], header: str, wrap: bool = False) -> pathlib.Path:
+    """A drive's log: time in ms, torque in % of rated, position in revolutions (tab)."""
+    q = r["q"] / (2 * math.pi)
+    q = np.mod(q, 1.0) if wrap else q
+    rows = [f"{t * 1000:.3f}\t{u:.10g}\t{x:.12g}" for t, u, x in zip(r["t"], r["u"], q, strict=True)]
+    path.write_text(f"Time [ms]\tTorque [%]\t{header}\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def test_positions_in_revolutions_and_micrometres_are_read(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A servo drive logs q in revolutions, a linear scale in µm: both are units torchfric
+    reads (before, "[rev]" was taken as rad: every parameter 2π off, silently)."""
+    assert split_unit("Actual position [rev]") == ("actual_position", "rev", True)
+    assert split_unit("Lageistwert [Umdr]")[1:] == ("rev", True)
+    assert split_unit("Position in turns")[1:] == ("rev", True)
+    assert split_unit("x [µm]")[1:] == ("um", True) and split_unit("x_um")[1:] == ("um", False)
+    clean = load_experiment(_clean(tmp_path / "clean.csv", record))
+    path = _turns(tmp_path / "drive_ident.csv", record, "Actual position [rev]")
+    cols = {"t": "Time [ms]", "u": "Torque [%]", "q": "Actual position [rev]"}
+    lab = load_experiment(path, columns=cols, time_unit="ms", position_unit="rev")
+    np.testing.assert_allclose(lab.q.numpy(), clean.q.numpy(), rtol=1e-11, atol=1e-12)
+    with pytest.raises(TorchfricError, match=r"is in rev \(its header says so\)"):
+        load_experiment(path, columns=cols, time_unit="ms", position_unit="rad")
+    monkeypatch.chdir(tmp_path)
+    assert main(["init", path.name, "--c-m", "0.05"]) == 0
+    assert 'position    rev (from the column name "Actual position [rev]")' in capsys.readouterr().out
+    d = Config.load(tmp_path / "drive_ident.toml").data
+    assert (d.position_unit, d.wrap_period, d.axis_unit) == ("rev", None, "rad")
+    # a single-turn position, 0 … 1 rev, wraps at one revolution
+    _turns(tmp_path / "single.csv", record, "Position [rev]", wrap=True)
+    assert main(["init", "single.csv", "--c-m", "0.05"]) == 0
+    assert Config.load(tmp_path / "single.toml").data.wrap_period == 1.0
+    # micrometres: a linear axis, q in m
+    rows = [f"{t:.6f},{u:.10g},{x * 1e6:.10g}" for t, u, x in zip(record["t"], record["u"], record["q"], strict=True)]
+    (tmp_path / "scale.csv").write_text("t,u,Position [µm]\n" + "\n".join(rows) + "\n")
+    capsys.readouterr()
+    assert main(["init", "scale.csv", "--c-m", "5"]) == 0
+    d = Config.load(tmp_path / "scale.toml").data
+    assert (d.position_unit, d.axis_unit) == ("um", "m")
+    scaled = load_experiment(tmp_path / "scale.csv", columns={"q": "Position [µm]"}, position_unit="um")
+    np.testing.assert_allclose(scaled.q.numpy(), clean.q.numpy(), rtol=1e-9, atol=1e-12)
+
+
+def test_a_unit_torchfric_does_not_read_is_refused_with_the_fix(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A header that states q's unit as one torchfric does not read stops init with one line
+    (before: "position rad (nothing says otherwise)"); --position-unit names the unit."""
+    monkeypatch.chdir(tmp_path)
+    _turns(tmp_path / "inch.csv", record, "Position [inch]")
+    assert main(["init", "inch.csv", "--c-m", "0.05"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and not (tmp_path / "inch.toml").exists()
+    assert "the column 'Position [inch]' states its unit as \"inch\"" in err
+    assert "rad, deg, rev, m, mm, um, counts" in err and "--position-unit" in err
+    assert main(["init", "inch.csv", "--c-m", "0.05", "--position-unit", "mm"]) == 0
+    assert "position    mm (--position-unit given)" in capsys.readouterr().out
+    assert Config.load(tmp_path / "inch.toml").data.position_unit == "mm"
+    # a known unit in the header and another on the command line: refused, nothing written
+    _turns(tmp_path / "turns.csv", record, "Position [rev]")
+    assert main(["init", "turns.csv", "--c-m", "0.05", "--position-unit", "rad"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "is in rev (its header says so) but --position-unit is rad" in err
+    assert not (tmp_path / "turns.toml").exists()
+
+
+def test_a_time_unit_torchfric_does_not_read_is_refused_unless_clock_times(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """``Zeit [min]`` would make every rate 60× off if read as s: init refuses it in one line
+    and --time-step reads the record without it; a clock column's bracket is not a unit."""
+    monkeypatch.chdir(tmp_path)
+    rows = [f"{t / 60:.12g};{u:.10g};{q:.12g}" for t, u, q in zip(record["t"], record["u"], record["q"], strict=True)]
+    (tmp_path / "minutes.csv").write_text("Zeit [min];u;q\n" + "\n".join(rows) + "\n")
+    assert main(["init", "minutes.csv", "--c-m", "0.8"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.count("minutes.csv") == 1
+    assert "the time column 'Zeit [min]' states its unit as \"min\"" in err and "--time-step" in err
+    assert main(["init", "minutes.csv", "--c-m", "0.8", "--time-step", "0.001"]) == 0
+    d = Config.load(tmp_path / "minutes.toml").data
+    assert d.time_step == 0.001 and "t" not in d.columns
+    # clock times under a header that names their format are read as seconds, as before
+    start = np.datetime64("2026-11-28T09:15:00.000")
+    stamps = [str(start + np.timedelta64(round(t * 1e6), "us"))[11:23] for t in record["t"]]
+    rows = [f"{c},{u:.10g},{q:.12g}" for c, u, q in zip(stamps, record["u"], record["q"], strict=True)]
+    (tmp_path / "clock.csv").write_text("Time [hh:mm:ss.fff],u,q\n" + "\n".join(rows) + "\n")
+    capsys.readouterr()
+    assert main(["init", "clock.csv", "--c-m", "0.8"]) == 0
+    assert "holds clock times" in capsys.readouterr().out
+
+
 # ------------------------------------------------------------------------------- the model
 def _fit(cfg: pathlib.Path, **sets) -> dict[str, float]:  # type: ignore[no-untyped-def]
     result = torchfric.fit(str(cfg), out=str(cfg.parent / f"run_{cfg.stem}"), quiet=True,

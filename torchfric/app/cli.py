@@ -19,6 +19,10 @@ from typing import NoReturn
 from ..errors import RunInterrupted, TorchfricError
 from ..version import __version__
 
+# torchfric.data.units.POSITION_UNITS (a test keeps them equal): importing it here would import
+# torch for every --help
+POSITION_UNIT_CHOICES = ("rad", "deg", "rev", "m", "mm", "um", "counts")
+
 __all__ = ["COMMANDS", "build_parser", "main"]
 
 
@@ -122,9 +126,7 @@ def _add_record_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--position-unit",
-        # torchfric.data.units.POSITION_UNITS (a test keeps them equal): importing it here would
-        # import torch for every --help
-        choices=("rad", "deg", "m", "mm", "counts"),
+        choices=POSITION_UNIT_CHOICES,
         default=None,
         help="unit of q in this file (default: the checkpoint's data.position_unit)",
     )
@@ -225,6 +227,12 @@ def _add_init(sub: argparse._SubParsersAction) -> None:
         metavar="N",
         default=None,
         help="q is in encoder counts, N per metre (a linear axis; q becomes m)",
+    )
+    p.add_argument(
+        "--position-unit",
+        choices=POSITION_UNIT_CHOICES,
+        default=None,
+        help="unit of q where its column name states none (or one torchfric does not read)",
     )
 
 

@@ -26,6 +26,7 @@ __all__ = [
     "position_factor",
     "si_unit",
     "split_unit",
+    "stated_unit",
 ]
 
 COLUMN_NAMES: tuple[str, ...] = ("t", "u", "q", "qdot")
@@ -34,15 +35,22 @@ TIME_UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 """Unit of t in the data files → factor to s that the loader multiplies t by."""
 
 POSITION_UNITS: dict[str, float | None] = {
-    "rad": 1.0, "deg": math.pi / 180.0, "m": 1.0, "mm": 1e-3, "counts": None,
+    "rad": 1.0, "deg": math.pi / 180.0, "rev": 2.0 * math.pi, "m": 1.0, "mm": 1e-3, "um": 1e-6,
+    "counts": None,
 }  # fmt: skip
 """Unit of q in the data files → factor to SI (rad or m) that the loader multiplies q by
 (None for counts: 2π / counts per revolution, or 1 / counts per metre)."""
 
+LINEAR_UNITS = ("m", "mm", "um")
+"""The position units of a linear axis (the rest but counts are angles)."""
+
 UNIT_ALIASES: dict[str, str] = {
     "deg": "deg", "degree": "deg", "degrees": "deg", "°": "deg", "grad": "deg", "rad": "rad",
-    "radian": "rad", "radians": "rad", "m": "m", "meter": "m", "metre": "m",
-    "meters": "m", "metres": "m", "mm": "mm", "counts": "counts", "count": "counts",
+    "radian": "rad", "radians": "rad", "rev": "rev", "revs": "rev", "revolution": "rev",
+    "revolutions": "rev", "turn": "rev", "turns": "rev", "umdr": "rev", "umdrehung": "rev",
+    "umdrehungen": "rev", "m": "m", "meter": "m", "metre": "m",
+    "meters": "m", "metres": "m", "mm": "mm", "µm": "um", "um": "um", "micron": "um",
+    "microns": "um", "counts": "counts", "count": "counts",
     "cnt": "counts", "cnts": "counts", "inc": "counts", "incr": "counts", "ticks": "counts",
     "increments": "counts", "inkremente": "counts", "inkr": "counts", "pulses": "counts",
     "impulse": "counts", "digits": "counts",
@@ -76,6 +84,17 @@ def split_unit(name: str) -> tuple[str, str | None, bool]:
     return s, unit, explicit
 
 
+def stated_unit(name: str) -> str | None:
+    """The unit a column name states explicitly (``"Position [rev]"`` → "rev", ``"t/ms"`` →
+    "ms", ``"Weg in inch"`` → "inch"), as written (lower case), known to torchfric or not;
+    None when the name states none."""
+    s = _plain(name)
+    m = _EXPLICIT.search(s)
+    if not (m and m.start() > 0):
+        return None
+    return next(g for g in m.groups() if g).strip() or None
+
+
 def position_factor(
     unit: str, counts_per_rev: float | None = None, counts_per_m: float | None = None
 ) -> float:
@@ -94,7 +113,7 @@ def position_factor(
 def si_unit(unit: str, counts_per_m: float | None = None) -> str:
     """The SI unit positions in `unit` are converted to: "m" (linear) or "rad" (rotary);
     counts are metres with `counts_per_m`, else radians."""
-    return "m" if unit in ("m", "mm") or (unit == "counts" and counts_per_m) else "rad"
+    return "m" if unit in LINEAR_UNITS or (unit == "counts" and counts_per_m) else "rad"
 
 
 def force_unit(unit: str, counts_per_m: float | None = None) -> str:

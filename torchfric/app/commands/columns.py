@@ -14,8 +14,9 @@ qdot), and whether its time and position units are what they seem.
   their resolution, given or from a wrap) and a wrap period; otherwise rad (or m), with a note
   when a speed above `FAST_SPEED` units/s suggests otherwise. `slow_cutoff`: a velocity
   cut-off for records too slow for 200 Hz.
-- `held_out_role`, `held_out_siblings`: records beside the data named as its held-out ones;
-  `parse_counts`: ``--counts-per-rev``/``--counts-per-m``; `parse_c_m`: ``--c-m``.
+- `parse_counts`: ``--counts-per-rev``/``--counts-per-m``; `parse_c_m`: ``--c-m``; the unit of
+  q from ``--position-unit`` where its header names none, or one torchfric does not read
+  (refused without it). Records beside the data named as its held-out ones: `pairs`.
 - What the record needs beyond its units: `noisy_cutoff` (a coarse encoder's quieter velocity),
   `terms_found` (a constant force, an unbalanced arm's gravity), `split_record` (``--split``).
 
@@ -25,29 +26,29 @@ the config's text itself (`init`).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import pathlib
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings, load_segments
+from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings
 from ...data.lab import nice_period, wrap_jumps
-from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, split_unit
+from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, split_unit, stated_unit
 from ...data.velocity import quieter_cutoff_hz, reconstruct_velocity
 from ...errors import TorchfricError, shorten
 from ..config import toml_value
 
 __all__ = [
     "ALIASES",
-    "held_out_role",
-    "held_out_siblings",
     "parse_counts",
     "FAST_SPEED",
     "MS_STEP",
     "map_columns",
+    "named_file",
     "noisy_cutoff",
     "terms_found",
     "parse_c_m",
@@ -157,10 +158,28 @@ def map_columns(
 
 
 # ------------------------------------------------------------------------------------ checks
-def time_unit_of(mapping: Mapping[str, str]) -> str:
-    """The unit of the t column by its name (``Zeit [ms]``, ``t_ms``), else s."""
+@contextlib.contextmanager
+def named_file(data: pathlib.Path) -> Iterator[None]:
+    """A `TorchfricError` raised inside, with the file's path in front."""
+    try:
+        yield
+    except TorchfricError as err:
+        raise TorchfricError(f"{data}: {err}") from None
+
+
+def time_unit_of(mapping: Mapping[str, str], clock: Sequence[str] = ()) -> str:
+    """The unit of the t column by its name (``Zeit [ms]``, ``t_ms``), else s. A name that
+    states a unit torchfric does not read (``Zeit [min]``) is refused, unless the column holds
+    clock times (`clock`: read as seconds whatever the header says)."""
     name = mapping.get("t")
     unit = _parse_name(name)[1] if name else None
+    said = stated_unit(name) if name and name not in clock else None
+    if said is not None and unit not in TIME_UNITS:
+        raise TorchfricError(
+            f'the time column {name!r} states its unit as "{said}", which torchfric does not '
+            f"read (it reads {', '.join(TIME_UNITS)}); convert t to one of them, or give "
+            "--time-step SECONDS, the sample time, and the column is not read"
+        )
     return unit if unit in TIME_UNITS else "s"
 
 
@@ -211,24 +230,56 @@ def _wrap(parts: Sequence[np.ndarray], unit: str | None) -> tuple[float | None, 
     if not jumps:
         return None, ""
     q = np.concatenate(parts)
-    period = 360.0 if unit == "deg" else 2 * math.pi if unit == "rad" else nice_period(q)
+    known = {"deg": 360.0, "rad": 2 * math.pi, "rev": 1.0}
+    period = known[unit] if unit in known else nice_period(q)
     return period, (
         f"q wraps ({jumps} jump(s) of about {period:g} between samples, "
         f"{q.min():.6g} … {q.max():.6g}): unwrapped at load, data.wrap_period = {period:g}"
     )
 
 
+def _header_unit(name: str, given: str | None) -> str | None:
+    """q's unit from its column name, or `given` (``--position-unit``). A name that states a
+    unit torchfric does not read is refused without `given` (taking it as rad would scale
+    every parameter wrongly), and one that states another known unit than `given` always."""
+    unit = _parse_name(name)[1]
+    said = stated_unit(name)
+    if given is not None:
+        if given not in POSITION_UNITS:
+            raise TorchfricError(
+                f"--position-unit {given}: expected one of {', '.join(POSITION_UNITS)}"
+            )
+        if unit is not None and said is not None and unit != given:
+            raise TorchfricError(
+                f"the column {name!r} is in {unit} (its header says so) but --position-unit "
+                f"is {given}; leave --position-unit out, or give --position-unit {unit}"
+            )
+        return given
+    if said is not None and unit is None:
+        raise TorchfricError(
+            f'the column {name!r} states its unit as "{said}", which torchfric does not read '
+            f"(it reads {', '.join(POSITION_UNITS)}); convert q to one of them, or give "
+            f"--position-unit UNIT with q's unit (e.g. --position-unit rad if '{said}' is not "
+            "a unit)"
+        )
+    return unit
+
+
 def position_unit_guess(
     name: str, parts: Sequence[np.ndarray], dt: float, config: str, *,
     counts_per_rev: float | None = None, counts_per_m: float | None = None,
+    position_unit: str | None = None,
 ) -> PositionGuess:  # fmt: skip
     """What init writes for q (`PositionGuess`), from q's column name, its values (each
-    segment's, in the file's unit) and ``--counts-per-rev``/``--counts-per-m``."""
-    unit = _parse_name(name)[1]
+    segment's, in the file's unit), ``--counts-per-rev``/``--counts-per-m`` and
+    ``--position-unit`` (`position_unit`, which wins over a name that states no unit or one
+    torchfric does not read)."""
+    unit = _header_unit(name, position_unit)
     q = np.concatenate(parts)
     counted = unit == "counts" or (np.all(q == np.round(q)) and np.unique(q).size >= 20)
     period, wrap_note = _wrap(parts, unit)
-    if counts_per_rev or counts_per_m or (counted and unit not in ("rad", "deg", "m", "mm")):
+    named = unit in POSITION_UNITS and unit != "counts"  # the header names another unit
+    if counts_per_rev or counts_per_m or (counted and not named):
         why = f'the name "{name}" says counts' if unit == "counts" else "q holds whole numbers only"
         per_rev = counts_per_rev if not counts_per_m else None
         if not (per_rev or counts_per_m):
@@ -253,9 +304,8 @@ def position_unit_guess(
         )  # fmt: skip
     notes = [wrap_note] if wrap_note else []
     if unit in POSITION_UNITS:
-        return PositionGuess(
-            unit, f'from the column name "{name}"', notes=notes, wrap_period=period
-        )
+        why = "--position-unit given" if position_unit else f'from the column name "{name}"'
+        return PositionGuess(unit, why, notes=notes, wrap_period=period)
     steps = np.concatenate([np.abs(np.diff(part)) for part in parts])
     if period is not None:
         steps = steps[steps < 0.5 * period]
@@ -402,64 +452,6 @@ def split_record(
 def rpm(speed: float) -> float:
     """A speed in rad/s as revolutions per minute (the number that shows degrees read as rad)."""
     return speed * 30.0 / math.pi
-
-
-# ------------------------------------------------------------------------------------ names
-_TRAIN_WORDS = {"train", "training", "identification", "ident", "id", "idf", "estimation", "fit"}
-_VALID_WORDS = {"val", "valid", "validation", "validate"}
-_TEST_WORDS = {"test", "testing"}
-
-
-def _words(stem: str) -> list[str]:
-    return [w for w in re.split(r"[^a-z0-9]+", stem.lower()) if w]
-
-
-def held_out_role(data: pathlib.Path, other: pathlib.Path) -> tuple[str, bool] | None:
-    """("validation" or "test", whether it pairs with `data`) when `other` is named as a
-    held-out record (a validation word wins over a test word), else None. It pairs when the
-    two names agree once the role words are dropped: ``run1_train`` ↔ ``run1_val`` and
-    ``run1_test``, ``train`` ↔ ``test``."""
-    words = _words(other.stem)
-    role = (
-        "validation"
-        if any(w in _VALID_WORDS for w in words)
-        else "test"
-        if any(w in _TEST_WORDS for w in words)
-        else None
-    )
-    if role is None:
-        return None
-    roles = _TRAIN_WORDS | _VALID_WORDS | _TEST_WORDS
-    rest = [w for w in words if w not in roles]
-    return role, rest == [w for w in _words(data.stem) if w not in roles]
-
-
-def held_out_siblings(
-    data: pathlib.Path,
-    mapping: Mapping[str, str],
-    time_step: float | None,
-    dt: float,
-    units: Mapping[str, object],
-) -> tuple[list[pathlib.Path], list[pathlib.Path], list[pathlib.Path]]:
-    """(validation, test, other): the held-out-named records beside `data` that read with its
-    columns and sample time (`_held_out`); the first two pair with `data`, the last do not.
-    Test-named ones are the validation when no validation-named one pairs."""
-    found: dict[tuple[str, bool], list[pathlib.Path]] = {}
-    for p in sorted(data.parent.iterdir()):
-        if p == data or p.suffix.lower() != data.suffix.lower() or not p.is_file():
-            continue
-        kind = held_out_role(data, p)
-        if kind is None:
-            continue
-        try:
-            exp = load_segments(p, columns=mapping, time_step=time_step, **units)[0][0]  # type: ignore[arg-type]
-        except TorchfricError:
-            continue
-        if abs(exp.dt - dt) <= 1e-3 * dt:
-            found.setdefault(kind, []).append(p)
-    val, test = found.get(("validation", True), []), found.get(("test", True), [])
-    other = sorted(found.get(("validation", False), []) + found.get(("test", False), []))
-    return (val, test, other) if val else (test, [], other)
 
 
 def parse_counts(per_rev: float | str | None, per_m: float | str | None) -> dict[str, float | None]:

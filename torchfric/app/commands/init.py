@@ -62,8 +62,8 @@ from ..config import MAX_NAME, Config, EstimatorConfig, ModelConfig, toml_value
 from .check import check_run
 from .columns import (
     PositionGuess,
-    held_out_siblings,
     map_columns,
+    named_file,
     noisy_cutoff,
     parse_c_m,
     parse_columns,
@@ -75,6 +75,7 @@ from .columns import (
     terms_found,
     time_unit_of,
 )
+from .pairs import held_out_siblings
 
 __all__ = ["cmd_init", "write_starter"]
 
@@ -319,21 +320,21 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
     plan.time_step = time_step if "t" not in plan.mapping else None
     counted = counter_time(table, plan.time_step) if plan.time_step else None
     plan.counter = counted[1] if counted else None
-    plan.time_unit = time_unit_of(plan.mapping) if plan.time_step is None else "s"
+    fmt = sniff_format(data)[0] if data.suffix.lower() in TEXT_TYPES else None
+    clock = fmt.clock if fmt else ()
+    with named_file(data):  # the units' messages name the file
+        plan.time_unit = time_unit_of(plan.mapping, clock) if plan.time_step is None else "s"
     exps, notes = load_segments(data, columns=plan.mapping, time_step=time_step,
                                 time_unit=plan.time_unit, wrap_period=math.inf)  # fmt: skip
     plan.segments = exps
     plan.exp = exp = max(exps, key=lambda e: e.n)
     refuse_milliseconds(exp, plan.mapping.get("t"), data)
     parts = [e.q.numpy() for e in exps]
-    try:
+    with named_file(data):
         plan.position = position_unit_guess(
             plan.mapping["q"], parts, exp.dt, plan.out.name, **plan.counts
         )
-    except TorchfricError as err:
-        raise TorchfricError(f"{data}: {err}") from None
-    if data.suffix.lower() in TEXT_TYPES:
-        fmt = sniff_format(data)[0]
+    if fmt is not None:
         if fmt.delimiter != "," or fmt.decimal != ".":
             plan.notes.append(f"{data.name} is {fmt.describe()}: read as such")
         for name in fmt.clock:
@@ -419,6 +420,7 @@ def write_starter(
     time_step: float | None = None,
     counts_per_rev: float | None = None,
     counts_per_m: float | None = None,
+    position_unit: str | None = None,
 ) -> list[str]:
     """Write a commented starter config for the record `data`; returns what to tell the user.
 
@@ -434,6 +436,8 @@ def write_starter(
         time_step: sample time in s for a file without a time column.
         counts_per_rev, counts_per_m: q is in encoder counts, so many per revolution (rotary)
             or per metre (linear).
+        position_unit: q's unit (`POSITION_UNITS`) where its column name states none, or one
+            torchfric does not read; a name that states a known unit must agree.
     """
     c = parse_c_m(c_m)
     path = pathlib.Path(data).absolute()
@@ -441,7 +445,7 @@ def write_starter(
         raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")
     mapping = parse_columns(columns)
     plan = _Plan(path, _out_path(path, out, force), c)
-    plan.counts = parse_counts(counts_per_rev, counts_per_m)
+    plan.counts = {**parse_counts(counts_per_rev, counts_per_m), "position_unit": position_unit}
     _read(plan, mapping, time_step)
     _propose_validation(plan, split)
     found = _write(plan, force)
@@ -485,6 +489,7 @@ def cmd_init(args: argparse.Namespace) -> int:
         time_step=args.time_step,
         counts_per_rev=getattr(args, "counts_per_rev", None),
         counts_per_m=getattr(args, "counts_per_m", None),
+        position_unit=getattr(args, "position_unit", None),
     )
     print("\n".join(lines))
     return 0
