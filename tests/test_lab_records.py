@@ -392,6 +392,13 @@ def test_a_time_unit_torchfric_does_not_read_is_refused_unless_clock_times(tmp_p
     assert main(["init", "minutes.csv", "--c-m", "0.8", "--time-step", "0.001"]) == 0
     d = Config.load(tmp_path / "minutes.toml").data
     assert d.time_step == 0.001 and "t" not in d.columns
+    # a bracket that is not a unit stays a name; seconds spelled out are seconds
+    rows = [f"{t:.6f};{u:.10g};{q:.12g}" for t, u, q in zip(record["t"], record["u"], record["q"], strict=True)]
+    for header in ("Zeit (relativ)", "Time [seconds]"):
+        (tmp_path / "rel.csv").write_text(f"{header};u;q\n" + "\n".join(rows) + "\n")
+        assert main(["init", "rel.csv", "--c-m", "0.8", "--force"]) == 0
+        d = Config.load(tmp_path / "rel.toml").data
+        assert (d.columns["t"], d.time_unit) == (header, "s")
     # clock times under a header that names their format are read as seconds, as before
     start = np.datetime64("2026-11-28T09:15:00.000")
     stamps = [str(start + np.timedelta64(round(t * 1e6), "us"))[11:23] for t in record["t"]]

@@ -19,6 +19,7 @@ import unicodedata
 
 __all__ = [
     "COLUMN_NAMES",
+    "OTHER_TIME_UNITS",
     "POSITION_UNITS",
     "TIME_UNITS",
     "UNIT_ALIASES",
@@ -54,8 +55,17 @@ UNIT_ALIASES: dict[str, str] = {
     "cnt": "counts", "cnts": "counts", "inc": "counts", "incr": "counts", "ticks": "counts",
     "increments": "counts", "inkremente": "counts", "inkr": "counts", "pulses": "counts",
     "impulse": "counts", "digits": "counts",
-    "s": "s", "sec": "s", "ms": "ms", "us": "us", "µs": "us", "μs": "us",
+    "s": "s", "sec": "s", "secs": "s", "second": "s", "seconds": "s", "ms": "ms", "msec": "ms",
+    "millisecond": "ms", "milliseconds": "ms", "us": "us", "µs": "us", "μs": "us", "usec": "us",
+    "microsecond": "us", "microseconds": "us",
 }  # fmt: skip
+
+OTHER_TIME_UNITS = frozenset({
+    "min", "mins", "minute", "minutes", "h", "hr", "hrs", "hour", "hours", "ns", "nsec",
+    "nanosecond", "nanoseconds", "d", "day", "days",
+})  # fmt: skip
+"""Time units a header may state that torchfric does not convert: refused by name, where any
+other bracket after a time column's name (``Zeit (relativ)``, ``Time (UTC)``) is not a unit."""
 
 _EXPLICIT = re.compile(r"\s*(?:[\[(]([^\])]*)[\])]|/\s*(\S+)|\s+in\s+(\S+))\s*$")
 

@@ -37,7 +37,14 @@ import numpy as np
 
 from ...data import DEFAULT_CUTOFF_HZ, Experiment, data_warnings
 from ...data.lab import nice_period, wrap_jumps
-from ...data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS, split_unit, stated_unit
+from ...data.units import (
+    COLUMN_NAMES,
+    OTHER_TIME_UNITS,
+    POSITION_UNITS,
+    TIME_UNITS,
+    split_unit,
+    stated_unit,
+)
 from ...data.velocity import quieter_cutoff_hz, reconstruct_velocity
 from ...errors import TorchfricError, shorten
 from ..config import toml_value
@@ -169,12 +176,13 @@ def named_file(data: pathlib.Path) -> Iterator[None]:
 
 def time_unit_of(mapping: Mapping[str, str], clock: Sequence[str] = ()) -> str:
     """The unit of the t column by its name (``Zeit [ms]``, ``t_ms``), else s. A name that
-    states a unit torchfric does not read (``Zeit [min]``) is refused, unless the column holds
-    clock times (`clock`: read as seconds whatever the header says)."""
+    states a time unit torchfric does not read (``Zeit [min]``, `OTHER_TIME_UNITS`) is
+    refused, unless the column holds clock times (`clock`: read as seconds whatever the header
+    says); another bracket (``Zeit (relativ)``) is not a unit."""
     name = mapping.get("t")
     unit = _parse_name(name)[1] if name else None
     said = stated_unit(name) if name and name not in clock else None
-    if said is not None and unit not in TIME_UNITS:
+    if said in OTHER_TIME_UNITS:
         raise TorchfricError(
             f'the time column {name!r} states its unit as "{said}", which torchfric does not '
             f"read (it reads {', '.join(TIME_UNITS)}); convert t to one of them, or give "
