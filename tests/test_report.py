@@ -376,6 +376,38 @@ def test_the_kept_figures_handed_over_early_are_not_drawn_again(tmp_path, monkey
     assert drawing.trajectory() == b"drawn here"
 
 
+def test_a_kept_polish_titles_the_friction_curve_as_polished(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The curve of a run whose polish was kept is the polished θ's, not the pass's: its
+    title says so; without a kept polish it is the pass's."""
+    import dataclasses
+
+    from torchfric.app.config import Config
+    from torchfric.app.run import load_data, monitors
+    from torchfric.estimators.observers import RunEnd
+
+    titles: list[str] = []
+
+    class Recorder:
+        def submit(self, kind, spec):  # type: ignore[no-untyped-def]
+            if kind == "friction":
+                titles.append(spec["title"])
+            return len(titles)
+
+    monkeypatch.setattr(monitors, "shared_painter", lambda: Recorder())
+    monkeypatch.setattr(monitors, "render", lambda kind, spec: b"")
+    cfg = Config.load(rig_config(tmp_path))
+    _, validation, *_ = load_data(cfg)
+    scores = monitors.ValidationScores(cfg, list(validation))
+    model = ArmModel(OddTanhFriction(3), inertia=0.03, viscous=0.01, c_m=16.0)
+    scores.update(model)
+    P = torch.eye(model.num_parameters, dtype=torch.float64) * 1e-6
+    end = RunEnd(model, {"best_pass": 3}, 3, P, scores.latest, [])
+    monitors.KeptFigures(cfg, validation, 5.0).kept(end)
+    polished = dataclasses.replace(end, metrics={"best_pass": 3, "polished": {"steps": 2}})
+    monitors.KeptFigures(cfg, validation, 5.0).kept(polished)
+    assert titles == ["pass 3", "pass 3, polished"]
+
+
 @pytest.mark.parametrize("value", ["yes", "2", " 0"])
 def test_an_invalid_painter_switch_is_a_one_line_error(value, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     from torchfric.environment import check_environment

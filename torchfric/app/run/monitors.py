@@ -173,11 +173,12 @@ class KeptFigures:
         P_theta: Any,
         scores: Mapping[str, SimulationScore],
         skip: Collection[str] = (),
+        title: str | None = None,
     ) -> dict[str, int]:
         """`model`'s figures (`model_specs`) at `step`, handed to the painter, by tag (but
-        those of `skip`)."""
+        those of `skip`); the friction curve titled `title` (default "pass STEP")."""
         specs = model_specs(
-            model, self.v_max, f"pass {step}", self.cfg.data.axis_unit, P_theta,
+            model, self.v_max, title or f"pass {step}", self.cfg.data.axis_unit, P_theta,
             self.validation, dict(scores),
         )  # fmt: skip
         return {t: self.painter.submit(*spec) for t, spec in specs.items() if t not in skip}
@@ -226,7 +227,10 @@ class KeptFigures:
         if self._kept is None or self._kept[0] is not end:
             early = dict(self._early_for(end))
             self._trajectory = early.pop("trajectory", None)
-            drawing = {**early, **self.draw(end.step, end.model, end.covariance, end.scores, early)}
+            # a kept polish moved θ from the pass: the curve drawn is the polished one
+            title = f"pass {end.step}, polished" if "polished" in end.metrics else None
+            drawn = self.draw(end.step, end.model, end.covariance, end.scores, early, title)
+            drawing = {**early, **drawn}
             self._kept = (end, drawing)
             if self._trajectory is None and end.history:
                 self._trajectory = render(*trajectory_spec(end.history, self._best(end)))
