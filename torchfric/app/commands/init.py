@@ -18,7 +18,8 @@ every check a run makes on a record; which columns are ours and the units:
   ``velocity_cutoff_hz`` = 0.4 × Nyquist.
 - Gaps: rows missing or with empty/NaN fields cut the record into segments (train reads them
   so too); the note says which lines.
-- Units of q: a unit in the column's name sets ``position_unit``. Encoder counts (by the name,
+- Units of q: a unit in the column's name sets ``position_unit`` (one torchfric does not read
+  is refused), ``--position-unit`` where the name states none. Encoder counts (by the name,
   or whole numbers only) become ``"counts"`` with ``--counts-per-rev``/``--counts-per-m``, or
   with the wrap period of a q that wraps; counts with neither are refused. A q that wraps gets
   ``wrap_period``. Otherwise q is taken as rad (or m), with a note when a speed above
@@ -121,7 +122,7 @@ class _Plan:
         self.segments: list[Experiment] = []
         self.time_unit = "s"
         self.counter: str | None = None  # how t came from the file's sample counter
-        self.counts: dict[str, float | None] = {}
+        self.q_given: dict[str, object] = {}  # --counts-per-rev/-m, --position-unit
         self.position = PositionGuess("rad", "")
         self.cutoff: float | None = None
         self.noisy: tuple[float, float] | None = None  # (noise share, quieter cut-off)
@@ -332,7 +333,7 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
     parts = [e.q.numpy() for e in exps]
     with named_file(data):
         plan.position = position_unit_guess(
-            plan.mapping["q"], parts, exp.dt, plan.out.name, **plan.counts
+            plan.mapping["q"], parts, exp.dt, plan.out.name, **plan.q_given
         )
     if fmt is not None:
         if fmt.delimiter != "," or fmt.decimal != ".":
@@ -445,7 +446,7 @@ def write_starter(
         raise TorchfricError(f"{data}: no such file; give the path of your data file (CSV)")
     mapping = parse_columns(columns)
     plan = _Plan(path, _out_path(path, out, force), c)
-    plan.counts = {**parse_counts(counts_per_rev, counts_per_m), "position_unit": position_unit}
+    plan.q_given = {**parse_counts(counts_per_rev, counts_per_m), "position_unit": position_unit}
     _read(plan, mapping, time_step)
     _propose_validation(plan, split)
     found = _write(plan, force)
