@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 import scipy.io
-from scipy.signal import butter, filtfilt
 
 from torchfric import load_checkpoint, load_experiment
+from torchfric.data.velocity import zero_phase_acceleration, zero_phase_derivative
 from torchfric.estimators.metrics import score_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,9 +59,8 @@ def cruising(path: Path) -> dict[str, np.ndarray]:
     mat = scipy.io.loadmat(path)
     q = mat["qm"].ravel()
     dt = float(mat["t"].ravel()[1] - mat["t"].ravel()[0])
-    b, a = butter(4, 100.0 / (0.5 / dt))
-    v = np.gradient(filtfilt(b, a, q), dt)
-    acc = np.gradient(v, dt)
+    v = zero_phase_derivative(q, dt, cutoff_hz=100.0).numpy()
+    acc = zero_phase_acceleration(q, dt, cutoff_hz=100.0).numpy()
     force = float(mat["gtau"].ravel()[0]) * mat["vir"].ravel()
     t = np.arange(q.size) * dt
     rec = {"v": v, "force": force, "t": t, "steady": np.abs(acc) < STEADY}
