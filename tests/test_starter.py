@@ -88,6 +88,9 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert cfg.name == "rec" and cfg.model.c_m == C_M
     # a static model's neurons saturated by v95/2 (6), LuGre's by v95 (3): saturation_floor
     assert cfg.model.saturation == "auto" and cfg.model.dynamic == "auto"
+    # init names the selection rule: the default, validation with identification
+    assert cfg.estimator.select == "validation"
+    assert 'select = "validation"' in (user / "rec.toml").read_text()
     assert cfg.data.train == (str(user / "rec.csv"),) and cfg.data.validation == ()
     assert cfg.data.columns == {"t": "time", "u": "current", "q": "position"}
     assert cfg.data.position_unit == "rad" and cfg.data.velocity_cutoff_hz is None
@@ -107,6 +110,7 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert "tanh friction, size 3, friction class auto (static and LuGre identified" in out
     assert "11 parameters, c_m 16 (known, fixed)" in out
     assert "ekf: up to 30 passes (tolerance 0.5), ensemble of 9 filters" in out
+    assert re.search(r"^kept        the likeliest pass \(no validation records\)$", out, re.M)
     assert "4000 samples × 30 passes × 9 filter(s) = 1,080,000 filter steps" in out
     inertia = float(re.search(r"pre-fit on the identification data: inertia (\S+),", out)[1])
     assert inertia == pytest.approx(M, rel=0.02)  # the simulated arm's

@@ -91,6 +91,15 @@ def _figure(fig: Any, caption: str) -> str:
     )
 
 
+_CHOSEN_BY = {
+    "identification": "open-loop FIT on the identification records (validation held out)",
+    "validation": "validation FIT (so validation is not held out)",
+    "likelihood": "innovation likelihood",
+    "last_epoch": "the last epoch (validation held out)",
+}
+"""metrics.json's ``selected_on`` in words: what chose the kept pass (estimator.select)."""
+
+
 def _summary(metrics: Mapping[str, Any], title: str, created: dt.datetime) -> str:
     converged = metrics.get("converged")
     if converged is None:
@@ -107,6 +116,7 @@ def _summary(metrics: Mapping[str, Any], title: str, created: dt.datetime) -> st
         ("epochs" if epochs else "passes", _e(metrics.get("epochs" if epochs else "passes", "–"))),
         ("converged", conv),
         (f"kept {'epoch' if epochs else 'pass'}", _e("–" if best is None else best)),
+        ("chosen by", _e(_CHOSEN_BY.get(metrics.get("selected_on", ""), "–"))),
         ("time", f"{_num(metrics.get('seconds'), '.1f')} s"),
     ]
     body = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)

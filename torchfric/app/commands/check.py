@@ -157,6 +157,23 @@ def _model_lines(cfg: Config, base: ArmModel, start: ArmModel, init_kind: str) -
     return lines
 
 
+def _kept_line(cfg: Config) -> str:
+    """What chooses the model a run keeps (``estimator.select``)."""
+    est = cfg.estimator
+    unit = "pass and member" if est.ensemble else "pass"
+    if est.method == "output_error":
+        what = "the last epoch" if est.select == "identification" or not cfg.data.validation else (
+            "the best-validating epoch, so the validation FIT is not held out")  # fmt: skip
+        return _line("kept", what)
+    if est.select == "identification":
+        return _line("kept", f"the {unit} best simulating the identification records; "
+                     "validation chooses nothing (a held-out score)")  # fmt: skip
+    if cfg.data.validation:
+        return _line("kept", f"the best-validating {unit}, so the validation FIT is not held "
+                     'out (estimator.select = "identification" holds it out)')  # fmt: skip
+    return _line("kept", "the likeliest pass (no validation records)")
+
+
 def _estimator_lines(cfg: Config, samples: int) -> list[str]:
     est = cfg.estimator
     if est.method == "output_error":
@@ -168,6 +185,7 @@ def _estimator_lines(cfg: Config, samples: int) -> list[str]:
                 f"{window}, batch {est.batch}, early stop after {est.patience} evaluations "
                 "without improvement",
             ),
+            _kept_line(cfg),
             _line("work", f"{samples} samples × up to {est.epochs} epochs"),
         ]
     stop = f"tolerance {est.tolerance:g}" if est.tolerance > 0 else "no early stop"
@@ -183,6 +201,7 @@ def _estimator_lines(cfg: Config, samples: int) -> list[str]:
     steps = samples * est.passes * filters
     return [
         _line("estimator", f"ekf: up to {est.passes} passes ({stop}), {how}"),
+        _kept_line(cfg),
         _line(
             "work",
             f"{samples} samples × {est.passes} passes × {filters} filter(s) = "

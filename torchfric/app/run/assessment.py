@@ -193,6 +193,7 @@ def result_warnings(
     ident = metrics.get("identifiability") or {}
     out += [m for m in ident.get("messages", []) if not m.startswith("(within")]
     out += metrics.get("covariance_warnings", [])
+    out += metrics.get("selection_warnings", [])
     far = _far_from_maximum(final, metrics)
     if far:
         out.append(far)

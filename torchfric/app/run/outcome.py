@@ -22,11 +22,14 @@ import torch
 from torch import Tensor
 
 from ...data import Experiment
+from ...estimators.ensemble import EnsembleResult
 from ...estimators.metrics import mean_fit
 from ...estimators.passes import EKFResult, PassRecord
 from ...estimators.selection import select_by_fit
 from ...estimators.uncertainty import parameter_std
 from ...models.arm import ArmModel
+from ..config import Config
+from .assessment import scoring_engine
 from .autosize import dynamic_lines, size_lines
 from .snapshots import ekf_payload
 
@@ -36,12 +39,54 @@ __all__ = [
     "kept_payload",
     "parameter_lines",
     "parameter_table",
+    "member_held_out",
+    "note_held_out",
+    "selection_records",
+    "pass_fits",
     "score_passes",
     "summary_lines",
 ]
 
 
 @torch.no_grad()
+def _open_loop_scores(
+    model: ArmModel, thetas: Tensor, alive: list[int], records: Sequence[Experiment],
+    max_substeps: int, engine: str,
+) -> tuple[list[dict[str, dict[str, float]]], dict[int, float]]:  # fmt: skip
+    """The ensemble's own scorer (`select_by_fit`) on `records` alone, for the rows `alive` of
+    `thetas`: each row's fits and its mean over `records` of (FIT_q + FIT_q̇)/2, −inf where its
+    simulation fails (not the scorer's fallback to the likelihood)."""
+    _, fits, _ = select_by_fit(
+        model, thetas, alive, (), records, torch.zeros(thetas.shape[0]),
+        max_substeps=max_substeps, engine=engine,
+    )  # fmt: skip
+    scores = {}
+    for i in alive:
+        score = mean_fit(fits[i])
+        scores[i] = score if score is not None and math.isfinite(score) else -math.inf
+    return fits, scores
+
+
+def pass_fits(
+    model: ArmModel,
+    history: Sequence[PassRecord],
+    records: Sequence[Experiment],
+    *,
+    max_substeps: int = 64,
+    engine: str = "odeint",
+) -> dict[int, float]:
+    """The mean over `records` of (FIT_q + FIT_q̇)/2 of each pass of `history` not rolled back,
+    by pass index, from one batched open-loop simulation per record; a simulation that fails
+    scores −inf."""
+    todo = [r for r in history if not r.rolled_back]
+    if not todo or not records:
+        return {}
+    thetas = torch.tensor([r.theta for r in todo], dtype=torch.float64)
+    alive = list(range(len(todo)))
+    _, scores = _open_loop_scores(model, thetas, alive, records, max_substeps, engine)
+    return {record.index: scores[i] for i, record in enumerate(todo)}
+
+
 def score_passes(
     model: ArmModel,
     history: Sequence[PassRecord],
@@ -50,23 +95,75 @@ def score_passes(
     max_substeps: int = 64,
     engine: str = "odeint",
 ) -> None:
-    """Set `PassRecord.val_score` of the records not scored yet, in one batched open-loop
-    simulation per validation record (the ensemble's kept member; a resumed run's older
-    passes). A simulation that fails scores −inf."""
-    todo = [r for r in history if r.val_score is None and not r.rolled_back]
-    if not todo or not validation:
+    """Set `PassRecord.val_score` of the records not scored yet (the ensemble's kept member; a
+    resumed run's older passes): `pass_fits` on the validation records."""
+    todo = [r for r in history if r.val_score is None]
+    scores = pass_fits(model, todo, validation, max_substeps=max_substeps, engine=engine)
+    for record in todo:
+        if record.index in scores:
+            record.val_score = scores[record.index]
+
+
+HELD_OUT_GAP = 10.0
+"""Points of validation FIT (mean of q and q̇) by which another pass or member may beat the one
+a run kept by its identification records before the run warns (`note_held_out`)."""
+
+
+def selection_records(
+    select: str, train: Sequence[Experiment], validation: Sequence[Experiment]
+) -> tuple[list[Experiment], list[Experiment]]:
+    """The records that choose the model a run keeps (``estimator.select``): the validation
+    records that choose (all of them under "validation", else none) and the identification
+    records whose open-loop FIT chooses (under "identification": those with a velocity to
+    start a simulation from, else none)."""
+    if select == "validation":
+        return list(validation), []
+    return [], [e for e in train if e.qdot is not None]
+
+
+def member_held_out(
+    model: ArmModel, ens: EnsembleResult, validation: Sequence[Experiment], cfg: Config
+) -> dict[str, Any]:
+    """The ensemble's members scored on `validation` (the validation records when they chose
+    nothing, else none): each member's fits join its ``MemberSummary.fits``, which
+    ensemble.json lists, and the kept member is compared with the best-validating one
+    (`note_held_out`: the run's ``held_out`` and its warning, returned as metrics)."""
+    alive = [m.index for m in ens.members if m.fits]
+    if not alive or not validation:
+        return {}
+    engine = scoring_engine(cfg)
+    fits, scores = _open_loop_scores(model, ens.thetas, alive, validation, 64, engine)
+    for i in alive:
+        ens.members[i].fits.update(fits[i])
+    extra: dict[str, Any] = {}
+    note_held_out(extra, "member", ens.best, scores)
+    return extra
+
+
+def note_held_out(extra: dict[str, Any], kind: str, kept: int, scores: dict[int, float]) -> None:
+    """How the `kind` ("pass" or "member") a run kept by its identification records scores on
+    the validation records against the best of the others (`scores`: index → validation
+    score), into the run's metrics `extra`: ``held_out``, and a warning
+    (``selection_warnings``) when the best beats it by more than `HELD_OUT_GAP` points. The
+    validation records choose nothing here: they are reported."""
+    if kept not in scores or not any(math.isfinite(v) for v in scores.values()):
         return
-    thetas = torch.tensor([r.theta for r in todo], dtype=torch.float64)
-    alive = list(range(len(todo)))
-    # the ensemble's own scorer, on the validation records alone; its fits, not its scores (it
-    # falls back to the likelihood when nothing simulates, and a failed pass scores −inf here)
-    _, fits, _ = select_by_fit(
-        model, thetas, alive, (), validation, torch.zeros(len(todo)),
-        max_substeps=max_substeps, engine=engine,
-    )  # fmt: skip
-    for record, fit in zip(todo, fits, strict=True):
-        score = mean_fit(fit)
-        record.val_score = score if score is not None and math.isfinite(score) else -math.inf
+    best = max(scores, key=lambda i: (scores[i], i))
+    extra["held_out"] = {
+        kind: kept,
+        "score": scores[kept],
+        f"best_{kind}": best,
+        "best_score": scores[best],
+    }
+    if not scores[best] - scores[kept] > HELD_OUT_GAP:
+        return
+    extra.setdefault("selection_warnings", []).append(
+        f"the kept {kind} {kept}, chosen by the identification records, simulates the "
+        f"validation records at {scores[kept]:.1f} % (mean FIT of q and q̇) where {kind} {best} "
+        f"reaches {scores[best]:.1f} %: the identification records do not tell them apart. "
+        "Compare the two (ensemble.json, report.html), or choose on validation with "
+        'estimator.select = "validation" (its FIT is then no longer a held-out score)'
+    )
 
 
 def _candidates(result: EKFResult) -> list[tuple[PassRecord, Tensor, Tensor]]:
@@ -85,12 +182,15 @@ def _candidates(result: EKFResult) -> list[tuple[PassRecord, Tensor, Tensor]]:
     return out
 
 
-def keep_best(result: EKFResult, *, validating: bool) -> tuple[EKFResult, int]:
+def keep_best(
+    result: EKFResult, *, validating: bool, scores: dict[int, float] | None = None
+) -> tuple[EKFResult, int]:
     """The pass of `result` to keep and its number (0: no pass completed).
 
-    By validation score when `validating` (records need `val_score`: `score_passes`), else by
-    log-likelihood; ties go to the later pass. The returned result has that pass's θ, ``P_θθ``
-    and a fitted copy of the model; its history and `converged` are the run's.
+    By `scores` (pass index → score: `pass_fits` on the identification records) when given,
+    else by validation score when `validating` (records need `val_score`: `score_passes`),
+    else by log-likelihood; ties go to the later pass. The returned result has that pass's θ,
+    ``P_θθ`` and a fitted copy of the model; its history and `converged` are the run's.
     """
     cands = _candidates(result)
     if not cands:
@@ -98,7 +198,10 @@ def keep_best(result: EKFResult, *, validating: bool) -> tuple[EKFResult, int]:
 
     def key(c: tuple[PassRecord, Tensor, Tensor]) -> tuple[float, int]:
         r = c[0]
-        score = r.val_score if validating else r.loglik
+        if scores is not None:
+            score = scores.get(r.index, -math.inf)
+        else:
+            score = r.val_score if validating else r.loglik
         if score is None or not math.isfinite(score):
             score = -math.inf
         return score, r.index
@@ -117,12 +220,24 @@ def kept_pass(
     validation: Sequence[Experiment],
     engine: str = "odeint",
     tolerance: float | None = None,
+    *,
+    identification: Sequence[Experiment] = (),
+    held_out: bool = False,
 ) -> tuple[EKFResult, dict[str, Any]]:
     """The pass of an EKF run to keep (`keep_best`, after `score_passes` with `engine`) and
     the metrics that say which, and why the passes ended ("stopped": converged, rolled_back
-    or budget)."""
+    or budget). With `identification` records (``estimator.select = "identification"``;
+    `validation` is then empty) the passes are kept by their open-loop FIT on those; with
+    `held_out` the kept pass is compared with the best-validating one (`note_held_out`, from
+    the passes' ``val_score``: reported, not chosen by)."""
     score_passes(result.model, result.history, validation, engine=engine)
-    kept, best = keep_best(result, validating=bool(validation))
+    chosen = None
+    if identification and not validation:
+        chosen = pass_fits(result.model, result.history, identification, engine=engine)
+    kept, best = keep_best(result, validating=bool(validation), scores=chosen)
+    # what chose it (metrics.json's selected_on): the validation records, the identification
+    # records' open-loop FIT, or the likelihood (neither is there)
+    on = "validation" if validation else "identification" if chosen is not None else "likelihood"
     last = result.history[-1] if result.history else None
     if last is not None and last.rolled_back:  # converged too: the pass before is the best
         stopped = "rolled_back"
@@ -130,7 +245,7 @@ def kept_pass(
         stopped = "converged"
     else:
         stopped = "budget"
-    return kept, {
+    extra = {
         "passes": result.passes,
         "best_pass": best,
         "converged": result.converged,
@@ -140,7 +255,12 @@ def kept_pass(
         "last_change": last.rel_change if last is not None else None,
         "last_gain": _last_gain(result.history),
         "tolerance": tolerance,
+        "selected_on": on,
     }
+    if held_out:
+        scores = {r.index: r.val_score for r in result.history if r.val_score is not None}
+        note_held_out(extra, "pass", best, scores)
+    return kept, extra
 
 
 def _last_gain(history: Sequence[PassRecord]) -> float | None:
@@ -208,6 +328,28 @@ _STOPPED = {
 }
 
 
+_KEPT_BY = {
+    "identification": "best open-loop FIT on the identification records",
+    "validation": "best validation FIT",
+    "likelihood": "highest likelihood",
+    "last_epoch": "the last: no validation record chooses it",
+}
+"""Why the kept pass or epoch was kept, by metrics.json's ``selected_on``."""
+_BUDGET_KEPT_BY = {
+    "identification": "simulated the identification records best",
+    "validation": "validated best",
+    "likelihood": "fit the data best",
+}
+_HELD_OUT = {
+    "validation": "validation chose the kept model, so its FIT is not a held-out score "
+    '(estimator.select = "identification" keeps it held out)',
+    "identification": "validation: held out (it chose nothing; the identification records did)",
+    "last_epoch": "validation: held out (it chose nothing)",
+    "likelihood": "validation: held out (it chose nothing)",
+}
+"""The line after the validation FITs: whether they are held-out scores."""
+
+
 def _g(x: float | None) -> str:
     return "?" if x is None else f"{x:.2g}"
 
@@ -234,8 +376,9 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
         lines += size_lines(metrics["sizes"])
     if metrics.get("dynamics"):
         lines += dynamic_lines(metrics["dynamics"])
+    on = metrics.get("selected_on")
     if best is not None and total:
-        why = (
+        why = _KEPT_BY.get(on) or (
             "best validation FIT"
             if metrics.get("validation")
             else "the last: no validation data"
@@ -261,7 +404,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
                 tolerance=_g(metrics.get("tolerance")),
                 k=len(metrics["parameters"]),
                 limit=_g((metrics.get("tolerance") or 0.0) * len(metrics["parameters"])),
-                kept_by="validated best" if metrics.get("validation") else "fit the data best",
+                kept_by=_BUDGET_KEPT_BY.get(on)
+                or ("validated best" if metrics.get("validation") else "fit the data best"),
             )  # fmt: skip
         )
     table = metrics["parameters"]
@@ -275,6 +419,8 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     for group in ("validation", "test", "identification"):
         for name, m in metrics.get(group, {}).items():
             lines.append(f"{group} FIT ({name}): q {m['fit_q']:.2f} %, q̇ {m['fit_qdot']:.2f} %")
+    if metrics.get("validation") and on in _HELD_OUT:
+        lines.append(_HELD_OUT[on])
     if not metrics.get("validation"):
         lines.append(
             "validation: none (the identification FIT above flatters the model; add held-out "

@@ -43,7 +43,7 @@ from .autosize import choose_dynamic, choose_size_and_start, with_dynamic
 from .confidence import attach_covariance, attach_oe_covariance
 from .inputs import check_resources, config_model, device_named, initial_model, load_data
 from .monitors import Printer, ValidationScores
-from .outcome import kept_pass, kept_payload, parameter_table
+from .outcome import kept_pass, kept_payload, member_held_out, parameter_table, selection_records
 from .snapshots import (
     EKFResume,
     EnsembleResume,
@@ -76,13 +76,15 @@ class TrainResult:
 
 @dataclass
 class _Watch:
-    """What an estimator's run is handed: the validation scorer (the kept pass is chosen by
-    its scores), the run's observers as one list, and the progress printer."""
+    """What an estimator's run is handed: the validation scorer, the run's observers as one
+    list, the progress printer, and the records that choose (`outcome.selection_records`)."""
 
     scores: ValidationScores
     callbacks: CallbackList
     say: Printer
     device: torch.device | None = None  # where an ensemble filters (None: the CPU)
+    choosing: list[Experiment] = field(default_factory=list)
+    identification: list[Experiment] = field(default_factory=list)
 
 
 def _run_ekf(
@@ -111,8 +113,10 @@ def _kept(
     state, and the run's extra metrics (`more` and the filter's samples per second); the
     observers see it (`on_estimate`) before the run's σ are computed."""
     kept, extra = kept_pass(
-        result, obs.scores.validation, scoring_engine(cfg), cfg.estimator.tolerance
-    )
+        result, obs.choosing, scoring_engine(cfg), cfg.estimator.tolerance,
+        identification=obs.identification,
+        held_out=bool(obs.identification and obs.scores.validation) and "ensemble" not in more,
+    )  # fmt: skip
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
     extra.update(more)
     state, best = kept_payload(kept, extra), extra.get("best_pass")
@@ -160,11 +164,13 @@ def _run_ensemble(
         train_exps,
         cfg.estimator.ekf_tuning(),
         spec,
-        validation=obs.scores.validation,
+        validation=obs.choosing,
         callback=obs.callbacks,
         start=est.state if isinstance(est, EnsembleResume) else None,
         device=obs.device,
     )
+    # under select = "identification", every member's validation FIT: reported, not chosen by
+    held_out = member_held_out(model, ens, obs.identification and obs.scores.validation, cfg)
     summary = ens.summary()
     (run / "ensemble.json").write_text(
         json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
@@ -178,7 +184,7 @@ def _run_ensemble(
     )
     obs.callbacks.on_ensemble_end(ens.result)
     # the kept member's tuning scales: its covariance is computed under them
-    more = {"ensemble": summary, "tuning_scales": (best.q_scale, best.r_scale)}
+    more = {"ensemble": summary, "tuning_scales": (best.q_scale, best.r_scale), **held_out}
     return _kept(cfg, ens.result, obs, ens.seconds, more)
 
 
@@ -186,7 +192,6 @@ def _run_output_error(
     cfg: Config,
     model: ArmModel,
     train_exps: list[Experiment],
-    val_exps: list[Experiment],
     obs: _Watch,
     est: Resume | None,
 ) -> _Outcome:
@@ -197,7 +202,7 @@ def _run_output_error(
         model,
         train_exps,
         cfg.estimator.oe_tuning(cfg.seed),
-        validation=val_exps or None,
+        validation=obs.choosing or None,
         callback=obs.callbacks,
         start=None if resume is None else resume.start,
         initial_theta=None if resume is None else resume.initial_theta,
@@ -211,6 +216,7 @@ def _run_output_error(
         "converged": result.stopped_early,
         "stopped": "early" if result.stopped_early else "budget",
         "stopped_early": result.stopped_early,
+        "selected_on": "validation" if obs.choosing else "last_epoch",
     }
     return result.model, oe_payload(result, result.epochs), extra
 
@@ -326,11 +332,11 @@ class _Run:
             watch.callbacks.on_run_start(RunStart(model, self.init_kind, resumed=est is not None))
             if self.cfg.estimator.method == "ekf":
                 final, state, extra = _run_ekf(self.cfg, model, self.train, watch, est, run)
-                attach_covariance(self.cfg, final, self.train, state, extra, self.say, self.val)
-            else:
-                final, state, extra = _run_output_error(
-                    self.cfg, model, self.train, self.val, watch, est
+                attach_covariance(
+                    self.cfg, final, self.train, state, extra, self.say, watch.choosing
                 )
+            else:
+                final, state, extra = _run_output_error(self.cfg, model, self.train, watch, est)
                 attach_oe_covariance(self.cfg, final, self.train, state, extra, self.say)
             seconds = time.perf_counter() - self.t_start
             self.covariance = state.get("P_theta")  # the kept θ's (None after output error)
@@ -391,7 +397,8 @@ class _Run:
             snapshot_info=(self.fingerprints, self.init_kind, self.initial_inertia),
             extra=callbacks,
         )  # fmt: skip
-        return _Watch(scores, observers, self.say, self.device)
+        records = selection_records(self.cfg.estimator.select, self.train, self.val)
+        return _Watch(scores, observers, self.say, self.device, *records)
 
     def _metrics(
         self,
