@@ -214,25 +214,33 @@ def print_table(rows: list[dict]) -> None:
         )
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--machines", nargs="+", default=["rig", "stribeck", "lugre", "linear", "emps"],
-                   choices=["rig", "emps", *AXES])  # fmt: skip
+def run_machines(argv: list[str] | None, doc: str, one: Any, table: Any, machines: list[str],
+                 choices: list[str]) -> int:  # fmt: skip
+    """The command line these benchmarks share: ``--machines`` (default `machines`),
+    ``--seeds``, ``--jobs``, ``--out``, ``--json``; `one(out, machine, seed)` makes a row
+    (`jobs` at a time; a seed for each axis, seed 0 for a config), `table(rows)` prints them."""
+    p = argparse.ArgumentParser(description=doc.split("\n")[0])
+    p.add_argument("--machines", nargs="+", default=machines, choices=choices)
     p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--json", type=Path, default=None)
     a = p.parse_args(argv)
-    out = a.out or Path(tempfile.mkdtemp(prefix="model_class_"))
+    out = a.out or Path(tempfile.mkdtemp(prefix=f"{Path(sys.argv[0]).stem}_"))
     jobs = [(m, s) for m in a.machines for s in (a.seeds if m in AXES else [0])]
     t0 = time.perf_counter()
     with ThreadPoolExecutor(a.jobs) as pool:
         rows = list(pool.map(lambda job: one(out, *job), jobs))
-    print_table(rows)
+    table(rows)
     print(f"\n{len(rows)} machines × seeds in {time.perf_counter() - t0:.0f} s; runs in {out}")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_machines(argv, __doc__, one, print_table,
+                        ["rig", "stribeck", "lugre", "linear", "emps"], ["rig", "emps", *AXES])  # fmt: skip
 
 
 if __name__ == "__main__":
