@@ -27,6 +27,7 @@ from torchfric.app.config import (
     Config,
     reference,
 )
+from torchfric.app.config.estimator import SELECT_RULES
 from torchfric.app.config.toml_io import toml_value
 from torchfric.data.rig import EXPERIMENTS
 from torchfric.data.units import COLUMN_NAMES, POSITION_UNITS, TIME_UNITS
@@ -172,6 +173,7 @@ def test_choice_lists_are_the_codes(entries: dict) -> None:
         "model.init": set(INIT_KEYWORDS),
         "model.dynamic": {*DYNAMICS, "auto"},
         "estimator.units": set(TUNING_UNITS),
+        "estimator.select": set(SELECT_RULES),
     }
     for key, choices in expected.items():
         assert _choices(entries[key]["allowed"]) == choices, key
