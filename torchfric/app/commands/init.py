@@ -284,8 +284,8 @@ _HELP = {
     "(simulation-error training).",
     "select": 'What keeps the pass and ensemble member: "validation" (the validation records, '
     "with the identification records; their FIT is then not held out: a test record is) or "
-    '"identification" (those alone: validation is held out, but on 25 records of nine '
-    "machines the models kept scored worse on a third record; docs/results.md).",
+    '"identification" (those alone: validation is held out; on a third record neither rule '
+    "kept the better models everywhere: docs/results.md).",
     "passes": "EKF passes over the data, at most; they stop, converged, once a pass raises the "
     "innovation log-likelihood by less than `tolerance` nats per parameter (0: never).",
     "ensemble": "1: the start under 3 Q × 3 R tunings (9 filters), the best kept; 0: one "

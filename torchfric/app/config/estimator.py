@@ -103,10 +103,10 @@ class EstimatorConfig(TableSection):
             "identification": the identification records' full-length open-loop FIT (mean of q
             and q̇) alone, the rule that predicted held-out error best on EMPS; output error
             keeps its last epoch; validation records choose nothing and their FIT is held out.
-            Measured on 25 records of nine machines, the models it keeps scored worse on a
-            third record than the validation rule's (median FIT q 91.8 against 92.8 %, up to
-            16 points on sticky machines; docs/results.md, "Which records choose the kept
-            model"), so "validation" stays the default and ``torchfric init`` writes it.
+            Judged on a third record, neither rule wins everywhere (25 records of nine machines:
+            median FIT q 91.8 against the validation rule's 92.8 %; ten seeds of a conveyor:
+            92.6 against 86.6 %; docs/results.md, "Which records choose the kept model"), so
+            "validation" stays the default and ``torchfric init`` writes it.
         ekf: the EKF tuning (`EKFTuning`; keys passes, tolerance, p0_state, p0_theta, q_state,
             q_theta, r, measure, substeps, theta_bound, compile, p0_relative, rollback, units).
             p0_theta and q_theta are one number for every θ entry or one per entry.
