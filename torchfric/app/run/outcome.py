@@ -111,14 +111,15 @@ a run kept by its identification records before the run warns (`note_held_out`).
 
 def selection_records(
     select: str, train: Sequence[Experiment], validation: Sequence[Experiment]
-) -> tuple[list[Experiment], list[Experiment]]:
+) -> tuple[list[Experiment], list[Experiment], list[Experiment]]:
     """The records that choose the model a run keeps (``estimator.select``): the validation
-    records that choose (all of them under "validation", else none) and the identification
+    records that choose (all of them under "validation", else none), the identification
     records whose open-loop FIT chooses (under "identification": those with a velocity to
-    start a simulation from, else none)."""
+    start a simulation from, else none), and the validation records that only report (the
+    kept model compared with the best-validating one: under "identification")."""
     if select == "validation":
-        return list(validation), []
-    return [], [e for e in train if e.qdot is not None]
+        return list(validation), [], []
+    return [], [e for e in train if e.qdot is not None], list(validation)
 
 
 def member_held_out(

@@ -85,6 +85,7 @@ class _Watch:
     device: torch.device | None = None  # where an ensemble filters (None: the CPU)
     choosing: list[Experiment] = field(default_factory=list)
     identification: list[Experiment] = field(default_factory=list)
+    reported: list[Experiment] = field(default_factory=list)  # validation that chose nothing
 
 
 def _run_ekf(
@@ -115,7 +116,7 @@ def _kept(
     kept, extra = kept_pass(
         result, obs.choosing, scoring_engine(cfg), cfg.estimator.tolerance,
         identification=obs.identification,
-        held_out=bool(obs.identification and obs.scores.validation) and "ensemble" not in more,
+        held_out=bool(obs.reported) and "ensemble" not in more,
     )  # fmt: skip
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
     extra.update(more)
@@ -170,7 +171,7 @@ def _run_ensemble(
         device=obs.device,
     )
     # under select = "identification", every member's validation FIT: reported, not chosen by
-    held_out = member_held_out(model, ens, obs.identification and obs.scores.validation, cfg)
+    held_out = member_held_out(model, ens, obs.reported, cfg)
     summary = ens.summary()
     (run / "ensemble.json").write_text(
         json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
