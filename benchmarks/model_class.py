@@ -85,9 +85,10 @@ def _belt(rate_per_sample: float) -> AxisParameters:
                           max_input=3.0, substeps=40)  # fmt: skip
 
 
-# A static turntable with a 17-bit encoder (a user walk's machine, 2026-11-28, rebuilt from its
-# records: J 0.8, b 0.3, Coulomb 1.2 / stiction 1.6 N m, c_m 0.05 N m per %, 500 Hz), where
-# auto kept LuGre on 4 of 10 records: LuGre fits that travel more than a count and settle slowly.
+# A static turntable with a 17-bit encoder, after a user walk's machine of 2026-11-28 (J 0.8,
+# b 0.3, Coulomb 1.2 / stiction 1.6 N m, c_m 0.05 N m per %, 500 Hz), where auto kept LuGre on 4
+# of 10 records. With the walk's Stribeck velocity, 0.05 rad/s, this simulator's records keep
+# static on 6 of 6; at 0.3 rad/s (here) LuGre fits travel 4-15 counts and auto keeps 4 of 6.
 TURNTABLE_AXIS = AxisParameters(inertia=0.8, c_m=0.05, viscous=0.3, coulomb=1.2, static=1.6,
                                 stribeck_velocity=0.3, quantum=2 * math.pi / 131072, dt=2e-3,
                                 max_speed=6.0, max_input=80.0)  # fmt: skip
