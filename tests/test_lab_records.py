@@ -181,6 +181,41 @@ def test_a_row_of_units_under_the_names_joins_them(tmp_path, record, monkeypatch
         load_experiment(words)
 
 
+PREAMBLE = ["Name;X-Achse Trace", "Datei;C:\\TwinCAT\\Scope\\xachse.tcscopex",
+            "Startzeit;28.11.2026 09:14:02", "Abtastrate;1 kHz", ""]  # fmt: skip
+
+
+def test_a_scopes_preamble_above_the_header_is_skipped(tmp_path, record, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A scope export writes lines of its own above the column names (``Name;X-Achse Trace``,
+    ``Abtastrate;1 kHz``, a blank line): they are skipped, the file reads as it does without
+    them, line numbers still count them, and init says so; the input column's unit is named as
+    c_m's. Lines above the first row of numbers with the rows' number of fields stay the header
+    (a row of words under it is refused as before)."""
+    german = _german(tmp_path / "plain.csv", record, drop=set(range(1200, 1210)))
+    scope = tmp_path / "scope.csv"
+    scope.write_bytes("\r\n".join(PREAMBLE).encode() + b"\r\n" + german.read_bytes())
+    cols = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}
+    units = {"time_unit": "ms", "position_unit": "deg"}
+    a, notes_a = load_segments(german, columns=cols, **units)
+    b, notes_b = load_segments(scope, columns=cols, **units)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.q.numpy(), y.q.numpy())
+        np.testing.assert_array_equal(x.u.numpy(), y.u.numpy())
+        np.testing.assert_array_equal(x.t.numpy(), y.t.numpy())
+    assert "after line 1201 (10 samples)" in notes_a[0] and "after line 1206" in notes_b[0]
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main(["init", "scope.csv", "--c-m", "0.8"]) == 0
+    out = capsys.readouterr().out
+    assert "scope.csv: the 4 line(s) above its header (line 6) are a preamble: skipped" in out
+    assert "u is used as written, in A (column 'Strom [A]'): model.c_m is per A of u" in out
+    assert Config.load(tmp_path / "scope.toml").data.columns == cols
+    words = tmp_path / "words.csv"
+    words.write_text("t;u;q\nzero;one;two\n0;1;2\n")
+    with pytest.raises(TorchfricError, match=r"line 2: 'zero' in column 't' is not a number"):
+        load_experiment(words)
+
+
 def test_a_drives_german_names_for_the_actual_position_are_read_as_q(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Drive software names the measured position "Lageistwert" (or "Istlage"); a user walk's
     scope export stopped at "cannot tell which column is q"."""

@@ -52,7 +52,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ...data import DEFAULT_CUTOFF_HZ, Experiment, load_segments
-from ...data.lab import counter_time, sniff_format
+from ...data.lab import counter_time, reading_notes, sniff_format
 from ...data.readers import FILE_TYPES, TEXT_TYPES, read_columns, save_csv
 from ...data.units import POSITION_UNITS
 from ...errors import TorchfricError
@@ -339,12 +339,7 @@ def _read(plan: _Plan, columns: Mapping[str, str], time_step: float | None) -> N
         plan.position = position_unit_guess(
             plan.mapping["q"], parts, exp.dt, plan.out.name, **plan.q_given
         )
-    if fmt is not None:
-        if fmt.delimiter != "," or fmt.decimal != ".":
-            plan.notes.append(f"{data.name} is {fmt.describe()}: read as such")
-        for name in fmt.clock:
-            plan.notes.append(f"column {name!r} holds clock times: read as seconds from its "
-                              "first row")  # fmt: skip
+    plan.notes += reading_notes(data.name, fmt, plan.mapping["u"])
     if plan.time_unit != "s":
         plan.notes.append(
             f"t in {plan.time_unit} (column {plan.mapping['t']!r}): data.time_unit = "

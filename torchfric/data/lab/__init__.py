@@ -21,6 +21,7 @@ from .text import (
     RowLines,
     TextFormat,
     read_text_table,
+    reading_notes,
     sniff_format,
 )
 
@@ -36,6 +37,7 @@ __all__ = [
     "counter_time",
     "nice_period",
     "read_text_table",
+    "reading_notes",
     "sniff_format",
     "split_segments",
     "wrap_jumps",

@@ -35,12 +35,14 @@ __all__ = [
     "RowLines",
     "TextFormat",
     "read_text_table",
+    "reading_notes",
     "sniff_format",
 ]
 
 _HEAD_BYTES = 1 << 16  # the binary-data check looks at the first 64 KiB
 MAX_LINE = 1 << 20  # no header or comment line is longer than 1 MiB
 _SNIFF_ROWS = 50
+_PREAMBLE_LINES = 100  # lines above the header a scope or logger may write (`_head`)
 CSV_FIX = (
     "give a UTF-8 text file with a header line such as t,u,q (or t;u;q) and one row of numbers "
     "per sample"
@@ -62,6 +64,7 @@ class TextFormat:
     decimal: str
     header_line: int
     clock: tuple[str, ...] = ()  # columns of clock times (`CLOCK_FORMATS`), read as seconds
+    preamble: int = 0  # lines above the header (neither blank nor #) skipped as a preamble
 
     def describe(self) -> str:
         """E.g. ``"semicolon-separated, decimal comma"``, for notes."""
@@ -92,6 +95,29 @@ class RowLines:
         return f"line {self.line(row)}"
 
 
+_BRACKETED = re.compile(r"[\[(]\s*([^\[\]()]+?)\s*[\])]\s*$")
+
+
+def reading_notes(name: str, fmt: TextFormat | None, u_column: str) -> list[str]:
+    """What `torchfric init` says about how the file `name` was read (`fmt`: None for a file
+    that is not CSV text): its delimiter and decimal comma, a preamble skipped, clock columns,
+    and the unit the input column's name gives, which is u's own (u is never converted)."""
+    notes = []
+    if fmt is not None:
+        if fmt.delimiter != "," or fmt.decimal != ".":
+            notes.append(f"{name} is {fmt.describe()}: read as such")
+        if fmt.preamble:
+            notes.append(f"{name}: the {fmt.preamble} line(s) above its header (line "
+                         f"{fmt.header_line}) are a preamble: skipped")  # fmt: skip
+        notes += [f"column {c!r} holds clock times: read as seconds from its first row"
+                  for c in fmt.clock]  # fmt: skip
+    unit = _BRACKETED.search(u_column)
+    if unit:
+        notes.append(f"u is used as written, in {unit.group(1)} (column {u_column!r}): "
+                     f"model.c_m is per {unit.group(1)} of u")  # fmt: skip
+    return notes
+
+
 def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
     """The one-line error for a file that is not UTF-8 text, naming the first bad byte."""
     byte = exc.object[exc.start : exc.start + 1].hex() if exc.object else "?"
@@ -101,9 +127,15 @@ def _not_utf8(path: pathlib.Path, exc: UnicodeDecodeError) -> TorchfricError:
     )
 
 
-def _head(path: pathlib.Path) -> tuple[int, str, list[str], int]:
-    """(index, text) of the header line, up to `_SNIFF_ROWS` data lines after it and the
-    index of the first of them."""
+def _head(path: pathlib.Path) -> tuple[int, str, list[str], int, int]:
+    """(index, text) of the header line, up to `_SNIFF_ROWS` data lines after it, the index of
+    the first of them and how many lines above the header were skipped as a preamble.
+
+    The header is the first line that is neither blank nor a comment, unless lines above the
+    first row of numbers name fields in another number than those rows have — the preamble a
+    scope or logger writes (``Name;Trace 1``, ``Abtastrate;1 kHz``): then it is the first of
+    those lines whose fields, and those of every line after it, match the rows
+    (`_header_after_preamble`)."""
     with path.open("rb") as f:
         head = f.read(_HEAD_BYTES)
     if not head:
@@ -114,9 +146,8 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str], int]:
             f"{path}: cannot read the file as CSV: it holds binary data (a NUL byte at offset "
             f"{nul}), not text; {CSV_FIX}"
         )
-    header: tuple[int, str] | None = None
-    rows: list[str] = []
-    first = -1
+    lines: list[tuple[int, str]] = []  # (index, text) of the lines that are neither blank nor #
+    numbers = 0  # rows of numbers among them
     with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
         for i, line in enumerate(iter(lambda: f.readline(MAX_LINE), "")):
             if len(line) >= MAX_LINE and not line.endswith("\n"):
@@ -127,18 +158,45 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str], int]:
             body = line.strip()
             if not body or body.startswith("#"):
                 continue
-            if header is None:
-                header = i, line.rstrip("\r\n")
-            else:
-                first = i if first < 0 else first
-                rows.append(body.split("#")[0].rstrip())
-                if len(rows) >= _SNIFF_ROWS:
-                    break
-    if header is None:
+            lines.append((i, line.rstrip("\r\n")))
+            numbers += bool(numbers) or _numeric_line(body)
+            if numbers > _SNIFF_ROWS or len(lines) > _SNIFF_ROWS + _PREAMBLE_LINES:
+                break
+    if not lines:
         raise TorchfricError(
             f"{path}: no header line; the first line must name columns, e.g. t,u,q"
         )
-    return header[0], header[1], rows, first
+    at = _header_after_preamble(lines)
+    (index, header), rows = lines[at], lines[at + 1 : at + 1 + _SNIFF_ROWS]
+    first = rows[0][0] if rows else -1
+    return index, header, [r.split("#")[0].strip() for _, r in rows], first, at
+
+
+def _numeric_line(body: str) -> bool:
+    """Whether a line is a row of numbers (or clock times) under some delimiter."""
+    for delimiter in _DELIMITERS:
+        fields = _split(body.split("#")[0], delimiter)
+        if len(fields) >= 2 and all((_is_number(f) and f) or _clock_format(f) for f in fields):
+            return True
+    return False
+
+
+def _header_after_preamble(lines: list[tuple[int, str]]) -> int:
+    """The position in `lines` of the header: 0, or past a preamble — the first line before the
+    first row of numbers that splits, under some delimiter, into as many (≥ 2) fields as every
+    line after it up to the sniffed rows."""
+    first_numbers = next((k for k, (_, t) in enumerate(lines) if _numeric_line(t.strip())), None)
+    if first_numbers is None or first_numbers < 2:
+        return 0
+    window = lines[: first_numbers + _SNIFF_ROWS]
+    for k in range(first_numbers):
+        for delimiter in _DELIMITERS:
+            n = len(_split(window[k][1].split("#")[0], delimiter, header=True))
+            if n >= 2 and all(
+                len(_split(t.split("#")[0].strip(), delimiter)) == n for _, t in window[k + 1 :]
+            ):
+                return k
+    return 0
 
 
 def _split(line: str, delimiter: str, *, header: bool = False) -> list[str]:
@@ -170,7 +228,7 @@ def _sniff(path: pathlib.Path, header: str, rows: list[str]) -> tuple[str, list[
 def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
     """How the CSV text at `path` is written, and its column names (the header's fields)."""
     try:
-        header_at, header, rows, first = _head(path)
+        header_at, header, rows, first, preamble = _head(path)
     except UnicodeDecodeError as exc:
         raise _not_utf8(path, exc) from None
     except OSError as exc:
@@ -198,7 +256,8 @@ def sniff_format(path: pathlib.Path) -> tuple[TextFormat, list[str]]:
         comma = _comma_further(path, delimiter)  # the first rows: integers only (at rest)
     first = _split(rows[0], delimiter) if rows else []
     clock = tuple(n for n, f in zip(names, first, strict=False) if _clock_format(f))
-    return TextFormat(delimiter, "," if comma else ".", header_at + 1, clock), names
+    fmt = TextFormat(delimiter, "," if comma else ".", header_at + 1, clock, preamble)
+    return fmt, names
 
 
 # Clock times a logger writes in place of seconds, each with the substitution that makes it ISO
