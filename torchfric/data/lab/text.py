@@ -1,7 +1,7 @@
 """CSV text as lab software and drives write it: `read_text_table`.
 
-The header line (the first that is neither blank nor a ``#`` comment) and up to `_SNIFF_ROWS`
-data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
+The header line (the first that is neither blank nor a ``#`` comment, or the first after a
+scope's preamble: `_head`) and up to `_SNIFF_ROWS` data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
 that splits the header and every sniffed line into the same number (≥ 2) of fields; a row of
 units right under the names (``[ms];[V];[Inc]``) is joined to them (``Zeit [ms]``, which
 `torchfric.data.units.split_unit` reads); the decimal separator is a comma when the delimiter
