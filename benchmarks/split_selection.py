@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from model_class import AXES, CLI, run_machines  # noqa: E402  (a sibling)
+from model_class import AXES, CLI, _train, run_machines  # noqa: E402  (a sibling)
 
 from torchfric.data.axis import axis_record, write_csv  # noqa: E402
 
@@ -43,17 +43,10 @@ RULES = ("split", "ident", "valid", "oracle")
 
 
 def _run(folder: Path, cfg: str, label: str, sets: list[str]) -> dict[str, Any]:
-    out = folder / f"run_{label}"
-    argv = [*CLI, "train", cfg, "--out", str(out), "--quiet"]
-    for s in sets:
-        argv += ["--set", s]
-    done = subprocess.run(argv, cwd=folder, capture_output=True, text=True)
-    if done.returncode != 0:
-        raise RuntimeError(f"{folder.name} {label}: {done.stderr.strip()[-400:]}")
-    return {
-        "metrics": json.loads((out / "metrics.json").read_text()),
-        "members": json.loads((out / "ensemble.json").read_text())["members"],
-    }
+    """`model_class._train`'s run, with its ensemble.json's members."""
+    metrics, checkpoint, _ = _train(folder, Path(cfg), sets, label)
+    members = json.loads((checkpoint.parent / "ensemble.json").read_text())["members"]
+    return {"metrics": metrics, "members": members}
 
 
 def _fits(members: list[dict], record: str) -> np.ndarray:

@@ -97,6 +97,21 @@ def test_decimal_commas_after_rows_of_integers_are_read_as_such(tmp_path, record
     np.testing.assert_allclose(lab.q.numpy()[300:], record["q"], rtol=1e-11, atol=1e-12)
 
 
+GERMAN_COLUMNS = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}
+
+
+def _read_alike(a: pathlib.Path, b: pathlib.Path, keys: tuple[str, ...]) -> tuple[list, list]:
+    """`_german`'s columns of files `a` and `b` read as segments (ms, deg): the arrays `keys`
+    of every segment equal bit for bit; each file's notes."""
+    units = {"time_unit": "ms", "position_unit": "deg"}
+    segs_a, notes_a = load_segments(a, columns=GERMAN_COLUMNS, **units)
+    segs_b, notes_b = load_segments(b, columns=GERMAN_COLUMNS, **units)
+    for x, y in zip(segs_a, segs_b, strict=True):
+        for key in keys:
+            np.testing.assert_array_equal(getattr(x, key).numpy(), getattr(y, key).numpy())
+    return notes_a, notes_b
+
+
 @pytest.mark.parametrize("suffix", [".txt", ".tsv", ".dat", ".TXT"])
 def test_text_tables_named_as_loggers_name_them_read_as_the_csv(
     tmp_path, record, suffix, monkeypatch, capsys
@@ -163,17 +178,11 @@ def test_a_row_of_units_under_the_names_joins_them(tmp_path, record, monkeypatch
     head, *body = german.read_bytes().decode("utf-8").split("\r\n")
     two = tmp_path / "two.csv"
     two.write_text("\r\n".join(["Zeit;Strom;Winkel", "[ms];(A);deg", *body]), encoding="utf-8")
-    cols = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}
-    units = {"time_unit": "ms", "position_unit": "deg"}
-    a, notes_a = load_segments(german, columns=cols, **units)
-    b, notes_b = load_segments(two, columns=cols, **units)
-    for x, y in zip(a, b, strict=True):
-        np.testing.assert_array_equal(x.q.numpy(), y.q.numpy())
-        np.testing.assert_array_equal(x.t.numpy(), y.t.numpy())
+    notes_a, notes_b = _read_alike(german, two, ("q", "t"))
     assert "after line 1201 (10 samples)" in notes_a[0] and "after line 1202" in notes_b[0]
     monkeypatch.chdir(tmp_path)
     assert main(["init", "two.csv", "--c-m", "0.8"]) == 0
-    assert Config.load(tmp_path / "two.toml").data.columns == cols
+    assert Config.load(tmp_path / "two.toml").data.columns == GERMAN_COLUMNS
     capsys.readouterr()
     words = tmp_path / "words.csv"
     words.write_text("t;u;q\nzero;one point five;two\n0;1;2\n")
@@ -194,14 +203,7 @@ def test_a_scopes_preamble_above_the_header_is_skipped(tmp_path, record, monkeyp
     german = _german(tmp_path / "plain.csv", record, drop=set(range(1200, 1210)))
     scope = tmp_path / "scope.csv"
     scope.write_bytes("\r\n".join(PREAMBLE).encode() + b"\r\n" + german.read_bytes())
-    cols = {"t": "Zeit [ms]", "u": "Strom [A]", "q": "Winkel [deg]"}
-    units = {"time_unit": "ms", "position_unit": "deg"}
-    a, notes_a = load_segments(german, columns=cols, **units)
-    b, notes_b = load_segments(scope, columns=cols, **units)
-    for x, y in zip(a, b, strict=True):
-        np.testing.assert_array_equal(x.q.numpy(), y.q.numpy())
-        np.testing.assert_array_equal(x.u.numpy(), y.u.numpy())
-        np.testing.assert_array_equal(x.t.numpy(), y.t.numpy())
+    notes_a, notes_b = _read_alike(german, scope, ("q", "u", "t"))
     assert "after line 1201 (10 samples)" in notes_a[0] and "after line 1206" in notes_b[0]
     monkeypatch.chdir(tmp_path)
     capsys.readouterr()
@@ -209,7 +211,7 @@ def test_a_scopes_preamble_above_the_header_is_skipped(tmp_path, record, monkeyp
     out = capsys.readouterr().out
     assert "scope.csv: the 4 line(s) above its header (line 6) are a preamble: skipped" in out
     assert "u is used as written, in A (column 'Strom [A]'): model.c_m is per A of u" in out
-    assert Config.load(tmp_path / "scope.toml").data.columns == cols
+    assert Config.load(tmp_path / "scope.toml").data.columns == GERMAN_COLUMNS
     words = tmp_path / "words.csv"
     words.write_text("t;u;q\nzero;one;two\n0;1;2\n")
     with pytest.raises(TorchfricError, match=r"line 2: 'zero' in column 't' is not a number"):

@@ -147,7 +147,8 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str], int, int]:
             f"{nul}), not text; {CSV_FIX}"
         )
     lines: list[tuple[int, str]] = []  # (index, text) of the lines that are neither blank nor #
-    numbers = 0  # rows of numbers among them
+    numbers = 0  # lines from the first row of numbers on
+    first_numbers: int | None = None  # that row's position in `lines`
     with path.open(encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of a name
         for i, line in enumerate(iter(lambda: f.readline(MAX_LINE), "")):
             if len(line) >= MAX_LINE and not line.endswith("\n"):
@@ -159,14 +160,16 @@ def _head(path: pathlib.Path) -> tuple[int, str, list[str], int, int]:
             if not body or body.startswith("#"):
                 continue
             lines.append((i, line.rstrip("\r\n")))
-            numbers += bool(numbers) or _numeric_line(body)
+            if first_numbers is None and _numeric_line(body):
+                first_numbers = len(lines) - 1
+            numbers += first_numbers is not None
             if numbers > _SNIFF_ROWS or len(lines) > _SNIFF_ROWS + _PREAMBLE_LINES:
                 break
     if not lines:
         raise TorchfricError(
             f"{path}: no header line; the first line must name columns, e.g. t,u,q"
         )
-    at = _header_after_preamble(lines)
+    at = _header_after_preamble(lines, first_numbers)
     (index, header), rows = lines[at], lines[at + 1 : at + 1 + _SNIFF_ROWS]
     first = rows[0][0] if rows else -1
     return index, header, [r.split("#")[0].strip() for _, r in rows], first, at
@@ -181,11 +184,10 @@ def _numeric_line(body: str) -> bool:
     return False
 
 
-def _header_after_preamble(lines: list[tuple[int, str]]) -> int:
+def _header_after_preamble(lines: list[tuple[int, str]], first_numbers: int | None) -> int:
     """The position in `lines` of the header: 0, or past a preamble — the first line before the
-    first row of numbers that splits, under some delimiter, into as many (≥ 2) fields as every
-    line after it up to the sniffed rows."""
-    first_numbers = next((k for k, (_, t) in enumerate(lines) if _numeric_line(t.strip())), None)
+    first row of numbers (at `first_numbers`, None: none) that splits, under some delimiter,
+    into as many (≥ 2) fields as every line after it up to the sniffed rows."""
     if first_numbers is None or first_numbers < 2:
         return 0
     window = lines[: first_numbers + _SNIFF_ROWS]
