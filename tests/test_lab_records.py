@@ -209,7 +209,7 @@ def test_a_scopes_preamble_above_the_header_is_skipped(tmp_path, record, monkeyp
     capsys.readouterr()
     assert main(["init", "scope.csv", "--c-m", "0.8"]) == 0
     out = capsys.readouterr().out
-    assert "scope.csv: the 4 line(s) above its header (line 6) are a preamble: skipped" in out
+    assert "scope.csv: lines 1–5 above its header (line 6) are a preamble: skipped" in out
     assert "u is used as written, in A (column 'Strom [A]'): model.c_m is per A of u" in out
     assert Config.load(tmp_path / "scope.toml").data.columns == GERMAN_COLUMNS
     words = tmp_path / "words.csv"

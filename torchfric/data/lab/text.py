@@ -107,7 +107,7 @@ def reading_notes(name: str, fmt: TextFormat | None, u_column: str) -> list[str]
         if fmt.delimiter != "," or fmt.decimal != ".":
             notes.append(f"{name} is {fmt.describe()}: read as such")
         if fmt.preamble:
-            notes.append(f"{name}: the {fmt.preamble} line(s) above its header (line "
+            notes.append(f"{name}: lines 1–{fmt.header_line - 1} above its header (line "
                          f"{fmt.header_line}) are a preamble: skipped")  # fmt: skip
         notes += [f"column {c!r} holds clock times: read as seconds from its first row"
                   for c in fmt.clock]  # fmt: skip
