@@ -297,6 +297,23 @@ def test_simulate_members_equals_one_by_one(engine: str, one_by_one) -> None:  #
     torch.testing.assert_close(capped[:, [0, 2]], sims[:, [0, 2]], rtol=0, atol=0)
 
 
+def test_compiled_members_alone_are_the_batchs_rows_bit_for_bit(one_by_one) -> None:  # type: ignore[no-untyped-def]
+    """The compiled engine runs members of different sub-step counts one at a time: each
+    member's rows are exactly the rows it gets inside the whole batch at its own count (how
+    they were computed before), so the selection's scores do not move."""
+    true, exp, thetas, _ = one_by_one
+    need = [auto_substeps(true, exp.dt, theta=th) for th in thetas]
+    assert len(set(need)) > 1
+    sims = simulate_members(true, thetas, exp, engine="compiled")
+    K, x0 = thetas.shape[0], torch.stack([exp.q[0], exp.qdot[0]])
+    for steps in set(need):
+        with torch.no_grad():
+            batch = simulate(true, exp.t, exp.u[:, None].expand(-1, K), x0.expand(K, 2),
+                             theta=thetas, substeps=steps, engine="compiled")  # fmt: skip
+        for j in (j for j in range(K) if need[j] == steps):
+            assert torch.equal(sims[:, j], batch[:, j])
+
+
 @pytest.mark.slow
 def test_cli_ensemble_run_keeps_the_best_member_and_resumes(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """`estimator.ensemble` through `torchfric train`: ensemble.json, metrics, the checkpoint
