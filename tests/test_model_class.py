@@ -382,6 +382,51 @@ def test_a_run_with_dynamic_auto_trains_the_chosen_class(
     assert table is None and plain.model.dynamic == "none"
 
 
+def test_auto_compares_the_classes_on_the_identification_records_alone(
+    lugre_record: Experiment, static_record: Experiment, tmp_path: pathlib.Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:  # fmt: skip
+    """The class comparison gets the identification records and nothing else: with a
+    validation and a test record listed (each of them another record, and then swapped), the
+    records it is given are the identification record, unchanged."""
+    import torchfric.app.run.autosize as autosize
+
+    save_csv(tmp_path / "rig.csv", lugre_record, include_qdot=False)
+    save_csv(tmp_path / "a.csv", static_record, include_qdot=False)
+    cut = static_record.n // 2
+    other = make_experiment(static_record.t[:cut], static_record.u[:cut], static_record.q[:cut])
+    save_csv(tmp_path / "b.csv", other, include_qdot=False)
+    seen: list[list[Experiment]] = []
+
+    class Stop(Exception):
+        pass
+
+    def compared(static, lugre, train, *args, **kwargs):  # type: ignore[no-untyped-def]
+        seen.append(list(train))
+        raise Stop
+
+    monkeypatch.setattr(autosize, "compare_dynamics", compared)
+    for held in (["a.csv", "b.csv"], ["b.csv", "a.csv"]):
+        cfg = Config.from_dict(
+            {
+                "name": "classed",
+                "out_dir": str(tmp_path / "runs"),
+                "data": {"train": [str(tmp_path / "rig.csv")],
+                         "validation": [str(tmp_path / held[0])],
+                         "test": [str(tmp_path / held[1])]},
+                "model": {"c_m": 16.0, "dynamic": "auto"},
+                "estimator": {"ensemble": 0, "passes": 3},
+            }
+        )  # fmt: skip
+        with pytest.raises(Stop):
+            train(cfg, say=lambda _: None)
+    assert [len(s) for s in seen] == [1, 1]
+    for s in seen:
+        torch.testing.assert_close(s[0].q, lugre_record.q, rtol=0, atol=1e-12)
+        torch.testing.assert_close(s[0].u, lugre_record.u, rtol=0, atol=1e-12)
+    assert not (tmp_path / "runs").exists()  # stopped before a run directory was claimed
+
+
 def test_init_proposes_auto_and_a_bad_value_names_it(
     static_record: Experiment, tmp_path: pathlib.Path
 ) -> None:
