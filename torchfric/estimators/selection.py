@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor
 
-from ..accel import Step, iter_chunks, structure_key
+from ..accel import Step, iter_chunks, rk4_chunk, structure_key
 from ..data import Experiment
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
@@ -66,8 +67,10 @@ def simulate_members(
     `engine` as in `simulate`: when every member needs the same count they run as one batch;
     otherwise odeint batches the members that share a count and "compiled" runs each member
     alone, in the shape of a single simulation (generated code that every model structure has
-    anyway). The same RK4 steps either way (the compiled engine equals odeint to 1e-12,
-    tested), and each member's rows are the same bits alone or in a batch. Until 2026-11-28
+    anyway), the first alone and the others on a thread per core when the generated code ran
+    (its calls free the GIL; an Inductor or eager fallback stays on one thread). The same RK4
+    steps either way (the compiled engine equals odeint to 1e-12, tested), and each member's
+    rows are the same bits alone or in a batch. Until 2026-11-28
     "compiled" ran the whole batch once per count and kept each count's own rows: the nine
     LuGre members of a 20-minute record needed 5 counts (7 … 40 sub-steps), so 1,089 member
     sub-steps a sample did the work of 142, 234 s of that run's 464 (now 55 s) and its peak
@@ -88,15 +91,27 @@ def simulate_members(
             substeps=need[0], engine=engine,
         )  # fmt: skip
     out = torch.full((exp.n, K, 2), float("nan"), dtype=torch.float64)
+    if engine == "compiled":
+        from ..accel.native import thread_count  # (imported where the generated code runs)
+
+        alone = [j for j in range(K) if need[j] <= max_substeps]
+
+        def one(j: int) -> None:
+            out[:, j] = simulate(model, exp.t, u, x0, theta=thetas[j], substeps=need[j],
+                                 engine=engine)  # fmt: skip
+
+        for i, j in enumerate(alone):
+            one(j)  # the first builds (or loads) the step's generated code, alone
+            threads = thread_count(len(alone) - i - 1)
+            if threads > 1 and rk4_chunk(model).path == "native":  # its calls free the GIL
+                with ThreadPoolExecutor(threads) as pool:
+                    list(pool.map(one, alone[i + 1 :]))
+                break
+        return out
     for steps in sorted(set(need)):
         if steps > max_substeps:
             continue
         idx = [j for j in range(K) if need[j] == steps]
-        if engine == "compiled":
-            for j in idx:
-                out[:, j] = simulate(model, exp.t, u, x0, theta=thetas[j], substeps=steps,
-                                     engine=engine)  # fmt: skip
-            continue
         B = len(idx)
         out[:, idx] = simulate(
             model, exp.t, u[:, None].expand(-1, B), x0.expand(B, 2), theta=thetas[idx],

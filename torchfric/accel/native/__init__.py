@@ -72,6 +72,7 @@ __all__ = [
     "make_native_chunk",
     "cache_dir",
     "compiler",
+    "thread_count",
 ]
 
 
@@ -129,6 +130,12 @@ def _threads(members: int) -> int:
     at one for its tiny tensors."""
     env = os.environ.get("TORCHFRIC_NATIVE_THREADS")
     return max(1, min(members, int(env) if env else _cores()))
+
+
+def thread_count(tasks: int) -> int:
+    """Threads for `tasks` independent calls of generated code (`_threads`' count: one per
+    core, at most one per task, or ``$TORCHFRIC_NATIVE_THREADS``)."""
+    return _threads(tasks)
 
 
 class _Structures:
