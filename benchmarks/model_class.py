@@ -155,7 +155,8 @@ def _score(machine: str, metrics: dict, checkpoint: Path, m_true: float | None, 
 
         row["test_rmse_mm"] = emps_score(load_checkpoint(checkpoint))["test_rmse_mm"]
     else:
-        row["fit_q"] = next(iter(metrics["validation"].values()))["fit_q"]
+        fits = next(iter(metrics["validation"].values()))
+        row["fit_q"], row["fit_qdot"] = fits["fit_q"], fits["fit_qdot"]
         row["inertia_err_pct"] = 100 * (metrics["inertia"] / m_true - 1)
         row["curve_err_pct"] = _curve_error(checkpoint, truth, speeds)
     return row
@@ -197,8 +198,8 @@ def _speeds(machine: str, seed: int) -> np.ndarray:
 
 def print_table(rows: list[dict]) -> None:
     head = ("machine", "seed", "auto keeps", "t", "MSE gain", "bristle travel",
-            "settling per sample", "static FIT q / RMSE",
-            "LuGre FIT q / RMSE", "static M err", "LuGre M err", "static curve", "LuGre curve",
+            "settling per sample", "static FIT q, q̇ / RMSE",
+            "LuGre FIT q, q̇ / RMSE", "static M err", "LuGre M err", "static curve", "LuGre curve",
             "auto time", "other time")  # fmt: skip
     print("| " + " | ".join(head) + " |")
     print("|" + "---|" * len(head))
@@ -206,7 +207,9 @@ def print_table(rows: list[dict]) -> None:
         s, d = r.get("none", {}), r.get("lugre", {})
 
         def fit(x: dict) -> str:
-            return f"{x['test_rmse_mm']:.2f} mm" if "test_rmse_mm" in x else f"{x['fit_q']:.2f} %"
+            if "test_rmse_mm" in x:
+                return f"{x['test_rmse_mm']:.2f} mm"
+            return f"{x['fit_q']:.2f}, {x['fit_qdot']:.2f} %"
 
         def pct(x: dict, k: str) -> str:
             return f"{x[k]:+.2f} %" if k in x else "–"
