@@ -7,16 +7,21 @@ steps per second end to end (the ensemble's member-samples filtered ÷ the wall 
     python benchmarks/long_record.py --duration 120       # a 2-minute record, for a quick look
     python benchmarks/long_record.py --modes quiet --json after.json
     python benchmarks/long_record.py --modes quiet --dynamic auto --before 260a5ad --rounds 2
+    python benchmarks/long_record.py --axis lugre-motor --seed 101 --validation --modes quiet \
+        --dynamic auto --before 809092d
 
-The record is the user-style Stribeck axis (`torchfric.data.axis`, seed 1), written once as a
-CSV (``t,u,q``, 32–47 MB for 20 minutes) into ``--cache`` and reused: simulating it takes about a
-minute. The config is what ``torchfric init RECORD --c-m 1`` writes (the default model: tanh(3),
-the 9-filter ensemble, up to 30 passes), the whole record identified, no validation record;
-``--dynamic`` sets ``model.dynamic`` (``none`` by default, the static class as measured before
-init wrote ``auto``; ``auto`` adds the comparison of both classes). With ``--before REF`` the
-same runs of that commit (``git archive``, its torchfric first on ``PYTHONPATH``) alternate
-with this tree's for ``--rounds`` rounds, and the table adds the largest relative difference of
-the two releases' parameters (0 where the run computed the same numbers).
+The record is the user-style Stribeck axis (`torchfric.data.axis`, seed 1; ``--seed``), or
+with ``--axis lugre-motor`` a linear motor with LuGre friction (`AXES`), written once as a CSV
+(``t,u,q``, 32–47 MB for 20 minutes) into ``--cache`` and reused: simulating it takes one to two
+minutes. The config is what ``torchfric init RECORD --c-m C`` writes (C 1, or the motor's
+35 N/A; the default model: tanh(3), the 9-filter ensemble, up to 30 passes), the whole record
+identified, no validation record (``--validation``: a 30-s one, which keeps each member's
+best-validating pass); ``--dynamic`` sets ``model.dynamic`` (``none`` by default,
+the static class as measured before init wrote ``auto``; ``auto`` adds the comparison of both
+classes). With ``--before REF`` the same runs of that commit (``git archive``, its torchfric
+first on ``PYTHONPATH``) alternate with this tree's for ``--rounds`` rounds, and the table adds
+the largest relative difference of the two releases' parameters (0 where the run computed the
+same numbers).
 """
 
 from __future__ import annotations
@@ -42,27 +47,58 @@ ROOT = Path(__file__).resolve().parents[1]
 CLI = "import sys; from torchfric.app.cli import main; sys.exit(main())"
 
 
-def record(cache: Path, duration: float) -> Path:
-    """The axis record of `duration` s as a CSV in `cache` (made once)."""
-    path = cache / f"axis_{duration:g}s.csv"
-    if not path.exists():
-        from torchfric.data.axis import STRIBECK_AXIS, axis_record, write_csv
+# --axis: the simulated machine and the c_m given to init. "stribeck" is
+# `torchfric.data.axis.STRIBECK_AXIS`; "lugre-motor" the linear motor with LuGre friction of
+# the user walk of 2026-11-28 (docs/results.md): 2.2 kg, 35 N/A, bristles of 10 counts of a
+# 1-µm encoder, in SI units here.
+AXES = {"stribeck": 1.0, "lugre-motor": 35.0}
+
+
+def _axis(name: str):  # type: ignore[no-untyped-def]
+    from torchfric.data.axis import STRIBECK_AXIS, AxisParameters
+
+    if name == "stribeck":
+        return STRIBECK_AXIS
+    return AxisParameters(
+        inertia=2.2, c_m=35.0, viscous=15.0, coulomb=4.0, static=6.0, stribeck_velocity=0.02,
+        friction="lugre", sigma0=1.2e6, sigma1=2400.0, quantum=1e-6, dt=1e-3, max_speed=0.5,
+        max_input=1.5, substeps=40,
+    )  # fmt: skip
+
+
+def record(
+    cache: Path, duration: float, axis: str = "stribeck", seed: int = 1, validation: bool = False
+) -> Path:
+    """The `axis` record of `duration` s (noise and input of `seed`) as a CSV in `cache`
+    (made once); with `validation`, named ``…_identification.csv`` beside a 30-s
+    ``…_validation.csv`` of the same seed, which `torchfric init` then finds."""
+    tag = "axis" if axis == "stribeck" else axis
+    stem = f"{tag}_{duration:g}s{'' if seed == 1 else f'_seed{seed}'}"
+    path = cache / (f"{stem}_identification.csv" if validation else f"{stem}.csv")
+    records = [(path, duration, "identification")]
+    if validation:
+        records.append((cache / f"{stem}_validation.csv", 30.0, "validation"))
+    for where, length, kind in records:
+        if where.exists():
+            continue
+        from torchfric.data.axis import axis_record, write_csv
 
         t0 = time.perf_counter()
-        rec = axis_record(STRIBECK_AXIS, seed=1, duration=duration)
-        part = path.with_suffix(".part")
+        rec = axis_record(_axis(axis), seed=seed, duration=length, kind=kind)
+        part = where.with_suffix(".part")
         write_csv(part, rec)
-        os.replace(part, path)
-        print(f"made {path} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+        os.replace(part, where)
+        print(f"made {where} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     return path
 
 
-def config(data: Path, folder: Path) -> Path:
-    """The starter config ``torchfric init`` writes for `data` (c_m 1)."""
-    out = folder / "long.toml"
+def config(data: Path, folder: Path, c_m: float = 1.0) -> Path:
+    """The starter config ``torchfric init`` writes for `data` (`c_m`)."""
+    plain = re.fullmatch(r"axis_[\d.]+s", data.stem)  # the Stribeck record's config, as before
+    out = folder / ("long.toml" if plain else f"{data.stem}.toml")
     if not out.exists():
         subprocess.run(
-            [sys.executable, "-c", CLI, "init", str(data), "--c-m", "1", "--out", str(out)],
+            [sys.executable, "-c", CLI, "init", str(data), "--c-m", f"{c_m:g}", "--out", str(out)],
             check=True, capture_output=True,
         )  # fmt: skip
     return out
@@ -152,10 +188,13 @@ def main() -> None:
     ap.add_argument("--dynamic", default="none", help="model.dynamic: none, lugre or auto")
     ap.add_argument("--before", help="an earlier commit, measured alternately in the same run")
     ap.add_argument("--rounds", type=int, default=1, help="runs per release and mode")
+    ap.add_argument("--axis", choices=sorted(AXES), default="stribeck", help="the machine")
+    ap.add_argument("--seed", type=int, default=1, help="the record's noise and input")
+    ap.add_argument("--validation", action="store_true", help="a 30-s validation record too")
     a = ap.parse_args()
     a.cache.mkdir(parents=True, exist_ok=True)
-    data = record(a.cache, a.duration)
-    cfg = config(data, a.cache)
+    data = record(a.cache, a.duration, a.axis, a.seed, a.validation)
+    cfg = config(data, a.cache, AXES[a.axis])
     rows: dict[str, list[dict[str, Any]]] = {}
     with tempfile.TemporaryDirectory() as tmp:
         trees = {"this tree": ROOT}
