@@ -73,7 +73,7 @@ def simulate_members(
     rows are the same bits alone or in a batch. Until 2026-11-28
     "compiled" ran the whole batch once per count and kept each count's own rows: the nine
     LuGre members of a 20-minute record needed 5 counts (7 … 40 sub-steps), so 1,089 member
-    sub-steps a sample did the work of 142, 234 s of that run's 464 (now 55 s) and its peak
+    sub-steps a sample did the work of 142, 234 s of that run's 464 (now 52 s) and its peak
     memory, 1.59 GiB, five batches' results of the record's length.
     """
     if exp.qdot is None:
