@@ -97,8 +97,9 @@ def simulate_members(
         alone = [j for j in range(K) if need[j] <= max_substeps]
 
         def one(j: int) -> None:
-            out[:, j] = simulate(model, exp.t, u, x0, theta=thetas[j], substeps=need[j],
-                                 engine=engine)  # fmt: skip
+            with torch.no_grad():  # (grad mode is per thread: a worker starts with it on)
+                out[:, j] = simulate(model, exp.t, u, x0, theta=thetas[j], substeps=need[j],
+                                     engine=engine)  # fmt: skip
 
         for i, j in enumerate(alone):
             one(j)  # the first builds (or loads) the step's generated code, alone
