@@ -70,11 +70,11 @@ def simulate_members(
     anyway), the first alone and the others on a thread per core when the generated code ran
     (its calls free the GIL; an Inductor or eager fallback stays on one thread). The same RK4
     steps either way (the compiled engine equals odeint to 1e-12, tested), and each member's
-    rows are the same bits alone or in a batch. Until 2026-11-28
-    "compiled" ran the whole batch once per count and kept each count's own rows: the nine
-    LuGre members of a 20-minute record needed 5 counts (7 … 40 sub-steps), so 1,089 member
-    sub-steps a sample did the work of 142, 234 s of that run's 464 (now 52 s) and its peak
-    memory, 1.59 GiB, five batches' results of the record's length.
+    rows are the same bits alone or in a batch. Until 2026-11-28 "compiled" ran the whole
+    batch once per count and kept each count's own rows: the nine LuGre members of a
+    20-minute record needed 5 counts (7 … 40 sub-steps), so 1,089 member sub-steps a sample
+    did the work of 142, 234 s of that run's 464 (now 52 s) and its peak memory, 1.59 GiB,
+    five batches' results of the record's length.
     """
     if exp.qdot is None:
         raise TorchfricError(f"experiment {exp.name!r} has no velocity to score against")
@@ -104,7 +104,8 @@ def simulate_members(
         for i, j in enumerate(alone):
             one(j)  # the first builds (or loads) the step's generated code, alone
             threads = thread_count(len(alone) - i - 1)
-            if threads > 1 and rk4_chunk(model).path == "native":  # its calls free the GIL
+            native = getattr(rk4_chunk(model), "path", None) == "native"  # its calls free the GIL
+            if threads > 1 and native:
                 with ThreadPoolExecutor(threads) as pool:
                     list(pool.map(one, alone[i + 1 :]))
                 break
