@@ -101,14 +101,16 @@ def simulate_members(
                 out[:, j] = simulate(model, exp.t, u, x0, theta=thetas[j], substeps=need[j],
                                      engine=engine)  # fmt: skip
 
-        for i, j in enumerate(alone):
-            one(j)  # the first builds (or loads) the step's generated code, alone
-            threads = thread_count(len(alone) - i - 1)
-            native = getattr(rk4_chunk(model), "path", None) == "native"  # its calls free the GIL
-            if threads > 1 and native:
-                with ThreadPoolExecutor(threads) as pool:
-                    list(pool.map(one, alone[i + 1 :]))
-                break
+        if not alone:
+            return out
+        one(alone[0])  # the first builds (or loads) the step's generated code, alone
+        rest, threads = alone[1:], thread_count(len(alone) - 1)
+        if threads > 1 and getattr(rk4_chunk(model), "path", None) == "native":  # frees the GIL
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(one, rest))
+        else:
+            for j in rest:
+                one(j)
         return out
     for steps in sorted(set(need)):
         if steps > max_substeps:

@@ -123,19 +123,13 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def _threads(members: int) -> int:
+def thread_count(members: int) -> int:
     """Threads for `members` independent filters: one per core this process may use (members
     never share data, so the result does not depend on the count), or
     ``$TORCHFRIC_NATIVE_THREADS``. Independent of torch's own thread pool, which the CLI keeps
     at one for its tiny tensors."""
     env = os.environ.get("TORCHFRIC_NATIVE_THREADS")
     return max(1, min(members, int(env) if env else _cores()))
-
-
-def thread_count(tasks: int) -> int:
-    """Threads for `tasks` independent calls of generated code (`_threads`' count: one per
-    core, at most one per task, or ``$TORCHFRIC_NATIVE_THREADS``)."""
-    return _threads(tasks)
 
 
 class _Structures:
@@ -239,13 +233,13 @@ def _known(alias: str) -> _Built | None:
 
 def _launch(lib: ctypes.CDLL, K: int, C: int, lanes: int, ptrs: ctypes.Array) -> None:
     """Run the library's chunk over `K` members and `C` samples: groups of `lanes` members,
-    split evenly across `_threads` threads; in this thread when there is one, or when the call
+    split evenly across `thread_count` threads; in this thread when there is one, or when the call
     is too short to gain from threads (`_SPLIT_SECONDS`, timed on this library's first call,
     unless ``$TORCHFRIC_NATIVE_THREADS`` sets the count)."""
     blocks = -(-K // lanes)  # groups of `lanes` members, split evenly across threads
     # one group (the single filter, a small ensemble) never splits: no thread count to look up
     # and no timing on this, the hottest call
-    threads = 1 if blocks == 1 else _threads(blocks)
+    threads = 1 if blocks == 1 else thread_count(blocks)
     adaptive = threads > 1 and not os.environ.get("TORCHFRIC_NATIVE_THREADS")
     if adaptive:
         unit = _UNIT_SECONDS.get(lib)
@@ -307,7 +301,7 @@ def make_native_chunk(
 
     With `members`, every carry tensor and each const flagged in `member_consts` has a leading
     member axis K; `fn` is traced for one member (that axis kept at size 1) and the members run
-    independently, split across the cores (`_threads`). Per-sample outputs then have shape
+    independently, split across the cores (`thread_count`). Per-sample outputs then have shape
     ``(C, K, ...)``, as the scan of the batched function gives them. Raises
     `NativeUnavailable` (before touching anything) when the function cannot be translated,
     or with the reason "TORCHFRIC_NATIVE=0" when that switch is set (read at every call);

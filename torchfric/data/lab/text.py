@@ -1,14 +1,15 @@
 """CSV text as lab software and drives write it: `read_text_table`.
 
-The header line (the first that is neither blank nor a ``#`` comment, or the first after a
-scope's preamble: `_head`) and up to `_SNIFF_ROWS` data lines decide the format: the delimiter is the first of tab, ``;``, ``,`` and white space
-that splits the header and every sniffed line into the same number (≥ 2) of fields; a row of
-units right under the names (``[ms];[V];[Inc]``) is joined to them (``Zeit [ms]``, which
-`torchfric.data.units.split_unit` reads); the decimal separator is a comma when the delimiter
-is not one and the first number with a fraction is written with a comma (``1,25``); a column
-of clock times (`CLOCK_FORMATS`) is read as seconds from its first row. The body is then read by pandas' C parser (`pandas.read_csv`,
-imported on use): quoted fields, a byte-order mark, ``#`` comments, blank lines, empty fields
-and ``NaN`` (both read as NaN, which `torchfric.data.lab.segments` drops) are its business.
+The header line (the first that is neither blank nor a ``#`` comment, or the first after a scope's
+preamble: `_head`) and up to `_SNIFF_ROWS` data lines decide the format: the delimiter is the first
+of tab, ``;``, ``,`` and white space that splits the header and every sniffed line into the same
+number (≥ 2) of fields; a row of units right under the names (``[ms];[V];[Inc]``) is joined to them
+(``Zeit [ms]``, which `torchfric.data.units.split_unit` reads); the decimal separator is a comma
+when the delimiter is not one and the first number with a fraction is written with a comma
+(``1,25``); a column of clock times (`CLOCK_FORMATS`) is read as seconds from its first row. The
+body is then read by pandas' C parser (`pandas.read_csv`, imported on use): quoted fields, a
+byte-order mark, ``#`` comments, blank lines, empty fields and ``NaN`` (both read as NaN, which
+`torchfric.data.lab.segments` drops) are its business.
 
 A data row's place in the file is its line number (1-based, the header counted), found by
 `RowLines`, which reads the file again only when a message needs one.
