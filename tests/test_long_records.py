@@ -19,8 +19,10 @@ from rig_configs import rig_config
 
 from torchfric.app.commands.check import check_run
 from torchfric.app.config import Config
+from torchfric.app.run import config_model, estimate_run, load_data
+from torchfric.app.run.autosize import auto_estimate, with_dynamic
 from torchfric.app.run.monitors import ProgressLines, bar_size
-from torchfric.resources import run_peak_bytes
+from torchfric.resources import nominal_rate, run_peak_bytes, run_seconds
 
 pty = pytest.importorskip("pty")  # POSIX only
 
@@ -150,3 +152,30 @@ def test_progress_keeps_no_per_sample_history(monkeypatch: pytest.MonkeyPatch) -
                 assert max(_sizes(lines), default=0) < 100
             lines.close()
     assert len(said) == 3 * 1200  # the \r lines go out, none is kept by the observer
+
+
+@pytest.mark.parametrize("records", [1, 4])
+def test_auto_estimate_is_both_classes_on_what_they_are_compared_on_then_one(
+    tmp_path: pathlib.Path, records: int
+) -> None:
+    """`model.dynamic = "auto"`: check's range runs from the static model after two passes to
+    the LuGre model after every pass, each after both classes' ensembles over the samples
+    `choose_dynamic` identifies them on: the first 70 % of a 30 k-sample record, the 70,000
+    samples of `comparison_heads`' excerpts beyond 100,000 in all. At the nominal rate (not
+    timed) both filters run at one rate, so the range is closed form."""
+    cfg = Config.load(str(rig_config(
+        tmp_path, "auto", data={"train": ["rig:identification"] * records, "validation": None},
+        model={"dynamic": "auto"}, estimator={"ensemble": 1},
+    )))  # fmt: skip
+    train, *_ = load_data(cfg)
+    lugre_cfg = with_dynamic(cfg, "lugre")
+    lugre = estimate_run(lugre_cfg, train, config_model(lugre_cfg, train))
+    est = auto_estimate(cfg, train, lugre, timed=False)
+    samples, members, passes = sum(e.n for e in train), lugre.members, cfg.estimator.passes
+    compared = 70_000 if records == 4 else round(0.7 * samples)
+    rate = nominal_rate(members)
+    both = 2 * members * compared / rate  # one pass of each class
+    low, _ = run_seconds(samples=samples, passes=passes, members=members, rate=rate)
+    assert est.compared == compared and est.static_rate == est.rate == rate
+    assert est.seconds == pytest.approx((low + 2 * both, lugre.seconds[1] + passes * both))
+    assert samples * members * passes / rate < est.seconds[1]  # every pass of the kept class

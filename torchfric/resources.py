@@ -19,6 +19,7 @@ __all__ = [
     "format_bytes",
     "run_peak_bytes",
     "run_seconds",
+    "fewest_passes",
     "nominal_rate",
 ]
 
@@ -74,13 +75,21 @@ def nominal_rate(members: int) -> float:
     return 3e5 if members == 1 else 1.5e5 * members
 
 
+def fewest_passes(passes: int) -> int:
+    """The fewest passes a run of at most `passes` can stop after: two (the likelihood rule
+    compares a pass with the one before, and a rolled-back pass is the second at the
+    earliest), one when only one is allowed."""
+    return min(2, passes)
+
+
 def run_seconds(*, samples: int, passes: int, members: int, rate: float) -> tuple[float, float]:
-    """The seconds of an EKF run's filtering after its pre-fit: ``(after one pass, after all
-    `passes`)`` at `rate` member-steps a second (the ensemble's, measured): the passes of
-    `members` filters over `samples`, and the stages after them (`_AFTER_PASSES`)."""
+    """The seconds of an EKF run's filtering after its pre-fit: ``(after the fewest passes
+    (`fewest_passes`), after all `passes`)`` at `rate` member-steps a second (the ensemble's,
+    measured): the passes of `members` filters over `samples`, and the stages after them
+    (`_AFTER_PASSES`)."""
     after = _AFTER_PASSES * samples / rate
     per_pass = members * samples / rate
-    return after + per_pass, after + passes * per_pass
+    return after + fewest_passes(passes) * per_pass, after + passes * per_pass
 
 
 def format_bytes(n: float) -> str:

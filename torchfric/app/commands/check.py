@@ -11,7 +11,6 @@ pre-fit's compiled code may be added to the compiled-code cache, ``TORCHFRIC_CAC
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import pathlib
 import shlex
@@ -25,11 +24,12 @@ from ...data.velocity import settling_samples
 from ...errors import TorchfricError
 from ...estimators.sizing import HOLDOUT
 from ...models.arm import ArmModel
-from ...resources import format_bytes
+from ...resources import fewest_passes, format_bytes
 from ..artifacts import next_run_dir
 from ..config import Config
 from ..run import (
     RunEstimate,
+    auto_estimate,
     candidate_sizes,
     check_resources,
     config_model,
@@ -257,13 +257,9 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     lines += _model_lines(cfg, base, start, init_kind)
     lines += _estimator_lines(cfg, sum(e.n for e in train))
     estimate = estimate_run(one, train, start, timed=timed)
-    if cfg.model.dynamic == "auto" and estimate.seconds is not None:
-        # both classes on the head of the data (1 − HOLDOUT), then the chosen one on all of it
-        factor = 2 * (1 - HOLDOUT) + 1
-        estimate = dataclasses.replace(
-            estimate, seconds=tuple(factor * s for s in estimate.seconds)
-        )
-    lines += _estimate_lines(estimate, t_start, init_kind)
+    if cfg.model.dynamic == "auto":  # both classes compared first, then the kept one
+        estimate = auto_estimate(cfg, train, estimate, timed=timed)
+    lines += _estimate_lines(estimate, t_start, init_kind, cfg.estimator.passes)
     lines += [_line("warning", w) for w in found]
     if warnings is not None:
         warnings.extend(found)
@@ -274,7 +270,7 @@ def _minutes(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
-def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str) -> list[str]:
+def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str, passes: int) -> list[str]:
     """The run's time (the starting point as measured here, the filter at a rate timed here)
     and its peak memory (`torchfric.resources.run_peak_bytes`)."""
     start = f"{'pre-fit' if init_kind == 'prefit' else 'start'} {_minutes(start_s)}"
@@ -282,10 +278,16 @@ def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str) -> list[st
         time_text = f"not estimated for this estimator; the {start}"
     else:
         low, high = est.seconds
+        fewest, rate = fewest_passes(passes), f"{est.rate / 1e6:.2g} M"
+        ends, first = (f"{fewest} pass{'es' if fewest > 1 else ''}", "every pass"), ""
+        if est.static_rate is not None:  # model.dynamic = "auto" (`auto_estimate`)
+            ends = (f"static, {ends[0]}", f"LuGre, {ends[1]}")
+            rate = f"{est.static_rate / 1e6:.2g} M (static) and {rate} (LuGre)"
+            first = f"both classes on {est.compared:,} samples, then the kept one's "
         time_text = (
-            f"about {_minutes(start_s + low)} (one pass) to {_minutes(start_s + high)} (every "
-            f"pass): the {start} as here, then the filters' passes at {est.rate / 1e6:.2g} M "
-            f"filter steps/s ({'timed here' if est.timed else 'nominal'}) and the covariance"
+            f"about {_minutes(start_s + low)} ({ends[0]}) to {_minutes(start_s + high)} "
+            f"({ends[1]}): the {start} as here, then {first}passes at {rate} filter steps/s "
+            f"({'timed here' if est.timed else 'nominal'}) and the covariance"
         )
     free = "" if est.available is None else f"; {format_bytes(est.available)} available"
     return [

@@ -32,7 +32,7 @@ _LAZY: dict[str, str] = {
         "inputs",
     ),
     **dict.fromkeys(["candidate_sizes", "choose_size", "sized"], "autosize"),
-    **dict.fromkeys(["choose_dynamic", "with_dynamic"], "autosize"),
+    **dict.fromkeys(["auto_estimate", "choose_dynamic", "with_dynamic"], "autosize"),
     **dict.fromkeys(
         ["keep_best", "parameter_lines", "parameter_table", "summary_lines"], "outcome"
     ),

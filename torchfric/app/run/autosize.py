@@ -53,11 +53,12 @@ from ...estimators.sizing import (
     nests,
 )
 from ...models.lugre import CLASS_NAMES, bristles_seen, bristles_timed
-from ...resources import ekf_bytes, require_memory
+from ...resources import ekf_bytes, fewest_passes, require_memory
 from ..config import AUTO_SIZES, Config
-from .inputs import check_resources, config_model, initial_model
+from .inputs import RunEstimate, check_resources, config_model, estimate_run, initial_model
 
 __all__ = [
+    "auto_estimate",
     "choose_dynamic",
     "choose_size",
     "choose_size_and_start",
@@ -208,6 +209,31 @@ def choose_dynamic(
     for line in dynamic_lines(result):
         say("  " + line)
     return with_dynamic(cfg, result["chosen"]), result
+
+
+def auto_estimate(cfg: Config, train: list[Any], lugre: RunEstimate, *, timed: bool) -> RunEstimate:
+    """The time of a ``model.dynamic = "auto"`` run (``torchfric check``): both classes'
+    ensembles on what `choose_dynamic` identifies them on (`comparison_heads`' excerpts, else
+    the first 70 % of each record), then the kept class on all of it; from the static model
+    after the fewest passes to the LuGre model after every pass. `lugre`: `estimate_run` of the
+    LuGre model (the slower filter, the larger peak); the static filter is timed here from the
+    config's unfitted start (its rate does not depend on θ; a timing that fails falls back on
+    the nominal rate, as `estimate_run` does). The comparison's windows and pre-fits on the
+    excerpts are left out: seconds on the records we measured (docs/results.md)."""
+    static_cfg = with_dynamic(cfg, "none")
+    static = estimate_run(static_cfg, train, config_model(static_cfg, train), timed=timed)
+    if lugre.seconds is None or lugre.rate is None or static.seconds is None or not static.rate:
+        return lugre
+    heads = comparison_heads(train) or held_out_heads(train, HOLDOUT)
+    compared = sum(h.n for h in heads)
+    passes = cfg.estimator.passes
+    # one pass of both classes' ensembles over the compared samples
+    both = lugre.members * compared * (1 / static.rate + 1 / lugre.rate)
+    seconds = (
+        static.seconds[0] + fewest_passes(passes) * both,
+        lugre.seconds[1] + passes * both,
+    )
+    return dataclasses.replace(lugre, seconds=seconds, static_rate=static.rate, compared=compared)
 
 
 COMPARE_SAMPLES = 100_000  # records up to this many samples in all: identified whole

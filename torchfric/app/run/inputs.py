@@ -322,7 +322,9 @@ class RunEstimate:
     for output error) of the filtering after the pre-fit at ``rate`` member-steps a second
     (``timed`` here, else `torchfric.resources.nominal_rate`), with ``members`` filters, and its
     ``peak`` resident bytes (``available``: what this machine has free, None when it does not
-    say)."""
+    say). Under ``model.dynamic = "auto"`` (`torchfric.app.run.autosize.auto_estimate`)
+    ``rate`` is the LuGre model's, ``static_rate`` the static one's, and ``compared`` the
+    samples both are first identified on; else those two are None."""
 
     seconds: tuple[float, float] | None
     rate: float | None
@@ -330,6 +332,8 @@ class RunEstimate:
     members: int
     peak: int
     available: int | None
+    static_rate: float | None = None
+    compared: int | None = None
 
 
 class _Clock(Callback):
