@@ -40,7 +40,7 @@ from ..artifacts import (
 from ..config import Config
 from .assessment import evaluate_model, provenance, result_warnings, scoring_engine
 from .autosize import choose_dynamic, choose_size_and_start, with_dynamic
-from .confidence import attach_covariance, attach_oe_covariance
+from .confidence import attach_covariance, attach_oe_covariance, near_members
 from .inputs import check_resources, config_model, device_named, initial_model, load_data
 from .monitors import Printer, ValidationScores
 from .outcome import kept_pass, kept_payload, member_held_out, parameter_table, selection_records
@@ -151,11 +151,8 @@ def _run_ensemble(
 ) -> _Outcome:
     """The EKF ensemble in one batch; keeps the best member (`ensemble.json` lists them all)."""
     spec = cfg.estimator.ensemble_spec(cfg.seed)
-    starts = (
-        "the initial θ"
-        if spec.members == 1
-        else f"{spec.members} starts ×/÷ {spec.spread:g} around the initial θ"
-    )
+    many = f"{spec.members} starts ×/÷ {spec.spread:g} around the initial θ"
+    starts = "the initial θ" if spec.members == 1 else many
     obs.say(
         f"  ensemble of {spec.size} filters ({starts} × Q ×{_scales(spec.q_scales)} × "
         f"R ×{_scales(spec.r_scales)}), one batch; estimator.ensemble = 0 runs one filter"
@@ -184,8 +181,9 @@ def _run_ensemble(
         f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
     )
     obs.callbacks.on_ensemble_end(ens.result)
-    # the kept member's tuning scales: its covariance is computed under them
+    # the kept member's tuning scales (its covariance is computed under them), near members
     more = {"ensemble": summary, "tuning_scales": (best.q_scale, best.r_scale), **held_out}
+    more["near_members"] = near_members(ens)  # other estimates: `member_spread`
     return _kept(cfg, ens.result, obs, ens.seconds, more)
 
 
