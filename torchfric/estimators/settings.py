@@ -11,10 +11,10 @@ sections build (`torchfric.app.config`) and the Python API takes.
 Why this size: every number an estimator is set by, from the config or from the data, in one
 place, so that nothing else restates a default.
 
-Each class holds its defaults and validates itself against a model (`check(k)`); nothing else in
-torchfric restates a default. A run's ``[estimator]`` section (`torchfric.app.config`) holds
-these very objects, so the Python API's defaults are the CLI's: the compiled paths are on in
-both, and a run without ensemble keys runs `RUN_ENSEMBLE`.
+Each class holds its defaults and validates itself against a model (`check(k)`). A run's
+``[estimator]`` section (`torchfric.app.config`) holds these very objects, so the Python API's
+defaults are the CLI's: the compiled paths are on in both, and a run without ensemble keys runs
+`RUN_ENSEMBLE`.
 """
 
 from __future__ import annotations
@@ -454,10 +454,11 @@ def _columns(experiments: Sequence[Any], c_m: float) -> tuple[list[Tensor], Tens
 
 def static_terms(
     experiments: Sequence[Any], c_m: float, rotary: bool
-) -> tuple[tuple[float, float], tuple[float, float, float] | None]:
-    """``((constant, share), (g, q0, share) or None)`` from one regression: a constant and, if
-    `rotary`, ``s sin q + c cos q = g sin(q − q0)`` (q in rad) beyond it, lowest at q0 (the disc:
-    4.80, 3°, 84 %; the rig 0.0 %). A share is ``1 − RMS with / RMS without`` the term."""
+) -> tuple[tuple[float, float], tuple[float, float, float, float] | None]:
+    """``((constant, share), (g, q0, share, constant beside it) or None)``: a constant and, if
+    `rotary`, ``g sin(q − q0)`` beyond it (the disc: 4.80, 3°, 84 %; the rig 0.0 %), with the
+    constant fitted beside that (alone it is g sin's mean: 5.8 for a robot joint's 0.2).
+    A share is ``1 − RMS with / RMS without`` the term."""
     from .prefit import _least_squares
 
     cols, rhs, q = _columns(experiments, c_m)
@@ -469,7 +470,8 @@ def static_terms(
         return offset, None
     sol, arm = _least_squares([*cols, torch.sin(q), torch.cos(q)], rhs)
     s, c = float(sol[-2]), float(sol[-1])
-    return offset, (math.hypot(s, c), -math.atan2(c, s), (1 - arm / with_it) if with_it else 0.0)
+    g = (math.hypot(s, c), -math.atan2(c, s), (1 - arm / with_it) if with_it else 0.0)
+    return offset, (*g, float(sol[-3]))
 
 
 def constant_force(experiments: Sequence[Any], c_m: float) -> tuple[float, float]:

@@ -400,7 +400,9 @@ def terms_found(
     rotary = si_unit(position.unit, position.counts_per_m) == "rad"
     needed = needed_terms(parts, c_m, rotary)
     if "offset" in needed:
-        found["offset"] = (0.0, _OFFSET.format(*needed["offset"]))
+        force, share = needed["offset"]
+        text = _OFFSET.format(force, share) if share is not None else _OFFSET_ARM.format(force)
+        found["offset"] = (0.0, text)
     try:
         delay, share = input_delay_found(parts, c_m, rotary)
     except TorchfricError:  # never moves: the check that follows says so
@@ -418,6 +420,12 @@ _OFFSET = (
     "the record's inverse dynamics leave a constant force or torque of {0:.4g} (c_m·u fitted "
     "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
     "gravity on a vertical axis does: model.offset is on"
+)
+_OFFSET_ARM = (
+    "beside the unbalanced arm's torque below, the record's inverse dynamics leave a constant "
+    "torque of {0:.4g} (c_m·u fitted by inertia, viscous and Coulomb terms and g·sin(q − q0)); "
+    "an arm's log often carries one (a cable, a spring, friction that differs by direction), "
+    "and without it the inertia and b take it up: model.offset is on"
 )
 _GRAVITY = (
     "the record's inverse dynamics carry a torque {0:.3g}·sin(q − q0) with its lowest point at "
