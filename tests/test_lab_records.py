@@ -223,9 +223,14 @@ def test_a_drives_german_names_for_the_actual_position_are_read_as_q(tmp_path) -
     scope export stopped at "cannot tell which column is q"."""
     from torchfric.app.commands.columns import map_columns
 
-    for name in ("Lageistwert [Inc]", "Istlage", "Positionsistwert (mm)"):
+    for name in ("Lageistwert [Inc]", "Istlage", "Positionsistwert (mm)",
+                 "Gelenkwinkel [deg]", "Achsposition [mm]"):  # compounds: a robot's, an axis's
         table = {"Zeit [s]": np.zeros(3), "Stellgröße [V]": np.zeros(3), name: np.zeros(3)}
         assert map_columns(table, {}, tmp_path / "x.csv", False)["q"] == name
+    # a robot controller's log (user walk): compound names for the input and the angle
+    table = {"Zeit [ms]": np.zeros(3), "Motorstrom [A]": np.zeros(3), "Gelenkwinkel [deg]": np.zeros(3)}
+    assert map_columns(table, {}, tmp_path / "x.csv", False) == {
+        "t": "Zeit [ms]", "u": "Motorstrom [A]", "q": "Gelenkwinkel [deg]"}  # fmt: skip
 
 
 def _stamped(path: pathlib.Path, r: dict[str, np.ndarray], stamp, sep: str = ",") -> pathlib.Path:  # type: ignore[no-untyped-def]

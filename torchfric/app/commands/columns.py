@@ -130,6 +130,12 @@ def _parse_name(name: str) -> tuple[str, str | None]:
     return base, unit
 
 
+def _compound_of(base: str, aliases: Sequence[str]) -> bool:
+    """`base` is a compound word ending in one of `aliases` of five letters or more, as German
+    names its columns (``gelenkwinkel``: the joint's angle; ``achsposition``)."""
+    return any(base.endswith(a) and len(base) > len(a) for a in aliases if len(a) >= 5)
+
+
 def map_columns(
     table: Mapping[str, np.ndarray], given: Mapping[str, str], path: pathlib.Path, timed: bool
 ) -> dict[str, str]:
@@ -147,6 +153,8 @@ def map_columns(
         found = own or [n for n in free if _parse_name(n)[0] in ALIASES[role]]
         if not found and role != "qdot":  # a word of the name: "motor_current", "force_cmd_N"
             found = [n for n in free if set(_parse_name(n)[0].split("_")) & set(ALIASES[role])]
+        if not found and role != "qdot":  # a compound, head noun last: "Gelenkwinkel"
+            found = [n for n in free if _compound_of(_parse_name(n)[0], ALIASES[role])]
         if len(found) == 1:
             mapping[role] = found[0]
         elif role != "qdot":  # qdot is optional (the velocity is rebuilt from q)
