@@ -463,7 +463,7 @@ def test_file_errors(tmp_path: pathlib.Path) -> None:
         load_experiment(tmp_path / "x.xlsx")
     path = _write_npz(tmp_path, pos=np.zeros(50))
     with pytest.raises(
-        TorchfricError, match=r"no column 'qm' \(for q\); the file has: t \(50,\), u \(50,\), q"
+        TorchfricError, match=r"no column 'qm' \(for q\); the file has: t, u, q, pos;"
     ):
         load_experiment(path, columns={"q": "qm"})
     with pytest.raises(
@@ -683,3 +683,28 @@ def test_hsm150(shared_data: pathlib.Path) -> None:
     # at ~140-215 rad/s the 200 Hz differentiator agrees with it within the quantum/dt noise
     v = e.with_velocity().qdot
     assert (v[100:] - e.qdot[100:]).abs().mean().item() < 0.628
+
+
+def test_position_step_is_one_count_even_where_one_count_steps_are_rare() -> None:
+    """A fine encoder on a fast axis moves one count a sample in fewer than 1 % of its moving
+    samples (a robot joint's log: 222 of 30,000); the step is still that count, not the 1st
+    percentile's two. Read from text (counts rounded to the file's digits) as well. An
+    analogue record, whose steps fall anywhere, keeps the 1st percentile."""
+    from torchfric.data import position_step
+
+    quantum, n = 2 * math.pi / 262144, 30000
+    t = np.arange(n) * 2e-3
+    # mostly fast (6–40 counts a sample), with two slow creeps of one count every few samples
+    speed = np.where((t % 20) < 0.12, 0.01, 1.0 + 0.5 * np.sin(t))
+    counts = np.floor(np.cumsum(speed) * 2e-3 / quantum)
+    for digits in (None, 6):
+        q = counts * quantum if digits is None else np.round(np.degrees(counts * quantum), digits)
+        q = q if digits is None else np.radians(q)
+        e = make_experiment(t, np.zeros(n), q)
+        steps = np.abs(np.diff(q))
+        steps = steps[steps > 0]
+        assert np.quantile(steps, 0.01) > 1.5 * quantum  # the percentile alone is off
+        assert position_step([e]) == pytest.approx(quantum, rel=2e-3)
+    noisy = make_experiment(t, np.zeros(n), np.sin(t) + 1e-4 * np.random.default_rng(1).standard_normal(n))
+    steps = np.abs(np.diff(noisy.q.numpy()))
+    assert position_step([noisy]) == pytest.approx(np.quantile(steps[steps > 0], 0.01), rel=1e-12)

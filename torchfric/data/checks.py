@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from ..errors import TorchfricError
 from .experiment import Experiment
@@ -153,7 +154,29 @@ def data_warnings(
 def position_step(records: list[Experiment]) -> float:
     """The records' position step Δq: the 1st percentile of the nonzero |q[k+1] − q[k]| (one
     encoder count for a quantised record, a fraction of the noise for an analogue one); NaN
-    when q never moves."""
+    when q never moves. A record that moves one count a sample too rarely for that (a fine
+    encoder on a fast axis: a robot joint's 222 one-count steps of 30,000 put the percentile
+    at two counts) gets its count: the `COUNT_RANK`-th smallest step, when the steps up to the
+    percentile are whole multiples of it (`_whole_counts`) and the percentile is two or more."""
     steps = torch.cat([(e.q[1:] - e.q[:-1]).abs().to(torch.float64) for e in records])
-    steps = steps[steps > 0]
-    return float(torch.quantile(steps[:1_000_000], 0.01)) if steps.numel() else math.nan
+    steps = steps[steps > 0][:1_000_000]
+    if not steps.numel():
+        return math.nan
+    percentile = float(torch.quantile(steps, 0.01))
+    count = float(torch.kthvalue(steps, min(COUNT_RANK, steps.numel())).values)
+    if percentile >= 1.5 * count and _whole_counts(steps[steps <= percentile], count):
+        return count
+    return percentile
+
+
+COUNT_RANK = 20
+"""`position_step`'s count is the 20th smallest nonzero step: the smallest that recurs, not a
+single odd one."""
+
+
+def _whole_counts(steps: Tensor, count: float) -> bool:
+    """Nine in ten of `steps` lie within a tenth of `count` of a whole multiple of it (a
+    quantised record read from text: its counts round to the file's digits, not exactly; an
+    analogue one's steps fall anywhere)."""
+    r = steps / count
+    return bool(((r - r.round()).abs() <= 0.1).to(torch.float64).mean() >= 0.9)
