@@ -86,6 +86,23 @@ def test_prefit_rejects_data_that_never_move() -> None:
         prefit(ArmModel(make_friction("tanh", 3), c_m=16.0), exp)
 
 
+def test_prefit_refuses_an_input_that_no_inertia_explains() -> None:
+    """An input that no positive inertia explains (here an encoder counting the other way: u
+    opposes q̈; a robot joint in degrees read as rad, its gravity unmodelled, did the same)
+    drove M to 1e-66 and `check` passed it on: the pre-fit now names the inertia it reached
+    and what to check, instead of starting the filter from M ≈ 0."""
+    t = torch.arange(6000, dtype=torch.float64) * 1e-3
+    q = torch.sin(2 * torch.pi * 0.5 * t) + 0.3 * torch.sin(2 * torch.pi * 2.1 * t)
+    v = torch.gradient(q, spacing=1e-3)[0]
+    u = 0.01 * torch.gradient(v, spacing=1e-3)[0] + 0.05 * torch.tanh(v / 0.01)
+    model = ArmModel(make_friction("tanh", 3), c_m=1.0)
+    assert prefit(model, [make_experiment(t, u, q)]).model.physical_parameters()[
+        "inertia"
+    ] == pytest.approx(0.01, rel=0.05)
+    with pytest.raises(TorchfricError, match=r"drove the inertia to .*data.position_unit"):
+        prefit(model, [make_experiment(t, u, -q)])
+
+
 def test_prefit_rejects_too_short_data() -> None:
     t = torch.arange(100) * 1e-3
     exp = make_experiment(t, torch.zeros(100), torch.sin(t))

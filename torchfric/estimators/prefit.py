@@ -421,6 +421,12 @@ def _native_rows(
     return native(grad_chunk, jacobian), native(value_chunk, residuals)
 
 
+INERTIA_SHARE = 1e-6
+"""The least share of ‖c_m u‖ that the pre-fit's M ‖q̈‖ may carry: a robot joint's record in
+degrees read as rad, its 12 N m of gravity unmodelled, drove M to 7.9e-67 (1e-66 of it), and
+`check` passed it on."""
+
+
 def prefit(
     model: ArmModel,
     experiments: Experiment | Sequence[Experiment],
@@ -476,6 +482,16 @@ def prefit(
         )
     cost, fitted, its = best
     c_m = float(model.c_m.detach())
+    inertia = fitted.physical_parameters()["inertia"]
+    carried = inertia * float(a.norm()) / max(float((c_m * u).norm()), 1e-300)
+    if not carried >= INERTIA_SHARE:  # M → 0: the record's c_m·u is not an inertia's
+        raise TorchfricError(
+            f"the pre-fit drove the inertia to {inertia:.3g}, where M·q̈ carries {carried:.1e} "
+            "of c_m·u: the record's input is not explained by an inertia (q or t in other units "
+            "than the config says, a wrong c_m, or a large missing term such as gravity or an "
+            "offset); check data.position_unit, data.time_unit, model.c_m and the notes of "
+            '`torchfric init`, or start from the config\'s values with model.init = "config"'
+        )
     c_fit = float(fitted.c_m.detach()) if model.estimate_c_m else 1.0  # torque units
     rms = c_fit * math.sqrt(cost / q.numel())
     rel = c_fit * math.sqrt(cost) / max(float((c_m * u).norm()), 1e-300)
