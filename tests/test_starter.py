@@ -227,6 +227,7 @@ def test_init_refuses_bad_data_and_arguments_and_writes_nothing(user, record, ca
     )
     _fails(capsys, ["init", "rec.csv"], "--c-m is required", "not estimate it")
     _fails(capsys, ["init", "rec.csv", "--c-m", "abc"], "--c-m abc: expected a positive number")
+    _fails(capsys, ["init", "rec.csv", "--c-m", "8,0"], "with a decimal point: --c-m 8.0")
     _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--out", "taken.toml"], "exists", "--force")
     _fails(capsys, ["init", "rec.csv", "--c-m", "16", "--out", "rec.csv"], "names a data file")
     _fails(capsys, ["init", "missing.csv", "--c-m", "16"], "no such file")

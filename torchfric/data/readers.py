@@ -97,8 +97,10 @@ FILE_TYPES: tuple[str, ...] = tuple(_READERS)
 
 
 def _available(table: Mapping[str, np.ndarray]) -> str:
-    """The file's arrays and their shapes, for messages (``"none"`` when there are none)."""
-    return ", ".join(f"{key} {tuple(np.shape(val))}" for key, val in table.items()) or "none"
+    """The file's arrays for messages (``"none"`` when there are none), with the shape of each
+    that has columns to choose from (``name:k``); a CSV's columns are plain names."""
+    shown = [f"{k} {tuple(np.shape(v))}" if np.ndim(v) > 1 else k for k, v in table.items()]
+    return ", ".join(shown) or "none"
 
 
 def _has(table: Mapping[str, np.ndarray], spec: str) -> bool:

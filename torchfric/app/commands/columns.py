@@ -357,9 +357,11 @@ def parse_c_m(value: float | str | None) -> float:
     except ValueError:
         c_m = math.nan
     if not (math.isfinite(c_m) and c_m > 0):
+        comma = isinstance(value, str) and re.fullmatch(r"\s*\d+,\d+\s*", value)
+        hint = f" (with a decimal point: --c-m {value.strip().replace(',', '.')})" if comma else ""
         raise TorchfricError(
             f"--c-m {value}: expected a positive number, the motor constant (torque or force "
-            "per unit of u), e.g. --c-m 16"
+            f"per unit of u), e.g. --c-m 16{hint}"
         )
     return c_m
 
