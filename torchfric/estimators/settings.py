@@ -11,10 +11,8 @@ sections build (`torchfric.app.config`) and the Python API takes.
 Why this size: every number an estimator is set by, from the config or from the data, in one
 place, so that nothing else restates a default.
 
-Each class holds its defaults and validates itself against a model (`check(k)`). A run's
-``[estimator]`` section (`torchfric.app.config`) holds these very objects, so the Python API's
-defaults are the CLI's: the compiled paths are on in both, and a run without ensemble keys runs
-`RUN_ENSEMBLE`.
+Each class holds its defaults and checks itself against a model (`check(k)`); a run's
+``[estimator]`` section holds these very objects, so the Python API's defaults are the CLI's.
 """
 
 from __future__ import annotations

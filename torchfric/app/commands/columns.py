@@ -6,8 +6,9 @@ qdot), and whether its time and position units are what they seem.
 - `map_columns`: ours by name or a common alternative (`ALIASES`, English and the languages of
   lab software: German, French, Spanish, Italian), without case, accents and a unit
   (`torchfric.data.units.split_unit`: ``Time [s]``, ``t/ms``, ``pos_deg``); our own name wins,
-  and for t, u and q a name with an alternative as one of its words (``motor_current``) comes
-  last. Two candidates, or none for t, u or q, stop with the header and the line to write.
+  and for t, u and q a name with an alternative as one of its words (``motor_current``) or as
+  its last part (``Gelenkwinkel``) comes last. Two candidates, or none for t, u or q, stop with
+  the header and the line to write.
 - `time_unit_of`: the unit in t's name; `refuse_milliseconds`: a step that looks like ms (a
   step of `MS_STEP` or more, or by the data check's evidence) is refused, not worked around.
 - `position_unit_guess`: the unit of q (`PositionGuess`): from its name, encoder counts (with
@@ -49,25 +50,10 @@ from ...data.velocity import quieter_cutoff_hz, reconstruct_velocity
 from ...errors import TorchfricError, shorten
 from ..config import toml_value
 
-__all__ = [
-    "ALIASES",
-    "parse_counts",
-    "FAST_SPEED",
-    "MS_STEP",
-    "map_columns",
-    "named_file",
-    "noisy_cutoff",
-    "terms_found",
-    "parse_c_m",
-    "parse_columns",
-    "PositionGuess",
-    "position_unit_guess",
-    "refuse_milliseconds",
-    "time_unit_of",
-    "rpm",
-    "slow_cutoff",
-    "split_record",
-]
+__all__ = ["ALIASES", "parse_counts", "FAST_SPEED", "MS_STEP", "map_columns", "named_file",
+           "noisy_cutoff", "terms_found", "parse_c_m", "parse_columns", "PositionGuess",
+           "position_unit_guess", "refuse_milliseconds", "time_unit_of", "rpm", "slow_cutoff",
+           "split_record"]  # fmt: skip
 
 _MIN_PART = 100  # samples in each part of a --split
 
@@ -131,8 +117,7 @@ def _parse_name(name: str) -> tuple[str, str | None]:
 
 
 def _compound_of(base: str, aliases: Sequence[str]) -> bool:
-    """`base` is a compound word ending in one of `aliases` of five letters or more, as German
-    names its columns (``gelenkwinkel``: the joint's angle; ``achsposition``)."""
+    """`base` is a compound ending in an alias of five letters or more (``gelenkwinkel``)."""
     return any(base.endswith(a) and len(base) > len(a) for a in aliases if len(a) >= 5)
 
 
@@ -153,8 +138,8 @@ def map_columns(
         found = own or [n for n in free if _parse_name(n)[0] in ALIASES[role]]
         if not found and role != "qdot":  # a word of the name: "motor_current", "force_cmd_N"
             found = [n for n in free if set(_parse_name(n)[0].split("_")) & set(ALIASES[role])]
-        if not found and role != "qdot":  # a compound, head noun last: "Gelenkwinkel"
-            found = [n for n in free if _compound_of(_parse_name(n)[0], ALIASES[role])]
+            # else a compound, head noun last: "Gelenkwinkel"
+            found = found or [n for n in free if _compound_of(_parse_name(n)[0], ALIASES[role])]
         if len(found) == 1:
             mapping[role] = found[0]
         elif role != "qdot":  # qdot is optional (the velocity is rebuilt from q)
@@ -358,10 +343,10 @@ def parse_c_m(value: float | str | None) -> float:
         c_m = math.nan
     if not (math.isfinite(c_m) and c_m > 0):
         comma = isinstance(value, str) and re.fullmatch(r"\s*\d+,\d+\s*", value)
-        hint = f" (with a decimal point: --c-m {value.strip().replace(',', '.')})" if comma else ""
         raise TorchfricError(
             f"--c-m {value}: expected a positive number, the motor constant (torque or force "
-            f"per unit of u), e.g. --c-m 16{hint}"
+            "per unit of u), e.g. --c-m 16"
+            + (f" (with a decimal point: --c-m {value.strip().replace(',', '.')})" if comma else "")
         )
     return c_m
 
@@ -431,12 +416,11 @@ _OFFSET = (
     "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
     "gravity on a vertical axis does: model.offset is on"
 )
-_OFFSET_ARM = (
+_OFFSET_ARM = (  # beside gravity: `needed_terms`
     "beside the unbalanced arm's torque below, the record's inverse dynamics leave a constant "
     "torque of {0:.4g} (c_m·u fitted by inertia, viscous and Coulomb terms and g·sin(q − q0)); "
     "an arm's log often carries one (a cable, a spring, friction that differs by direction), "
-    "and without it the inertia and b take it up: model.offset is on"
-)
+    "and without it the inertia and b take it up: model.offset is on")  # fmt: skip
 _GRAVITY = (
     "the record's inverse dynamics carry a torque {0:.3g}·sin(q − q0) with its lowest point at "
     "q0 = {1:.0f}° (it takes {2:.0%} of the residual), as an unbalanced arm does: {3}"
