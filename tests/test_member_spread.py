@@ -64,3 +64,24 @@ def test_member_spread_widens_only_past_the_limit_by_every_near_member() -> None
     # the physical distance over the delta method's σ: exp(20 σ_θ) − 1 over σ_θ
     s = float(sd[j_m])
     assert math.isclose(record["worst"]["sigmas"], math.expm1(20 * s) / s, rel_tol=1e-9)
+
+
+def test_the_summary_warns_of_a_spread_the_covariance_took_in(tmp_path: pathlib.Path) -> None:
+    """metrics.json's ``covariance.member_spread`` becomes a warning naming the member, the
+    parameter and how many σ; a run without it gets none."""
+    from rig_configs import rig_config
+
+    from torchfric.app.config import Config
+    from torchfric.app.run.assessment import result_warnings
+
+    cfg = Config.load(rig_config(tmp_path))
+    model = load_checkpoint(ROOT / "checkpoints" / "arm_tanh_ekf.pt")
+    record = {"members": [3, 5], "near_fit": NEAR_FIT, "limit": SPREAD_LIMIT,
+              "worst": {"member": 5, "parameter": "viscous", "sigmas": 473.3}}  # fmt: skip
+    base = {"inertia": 0.03, "initial_inertia": 0.03, "validation": {}}
+    spread = {**base, "covariance": {"method": "sandwich", "member_spread": record}}
+    text = " ".join(result_warnings(cfg, model, spread, "prefit"))
+    assert "ensemble member 5 simulates within 2 FIT points of the kept one with viscous 473 σ" in text
+    assert "far beyond the sandwich's σ" not in " ".join(
+        result_warnings(cfg, model, {**base, "covariance": {"method": "sandwich"}}, "prefit")
+    )

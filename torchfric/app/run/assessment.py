@@ -201,11 +201,11 @@ def result_warnings(
     if spread:
         worst = spread["worst"]
         out.append(
-            f"ensemble member {worst['member']} simulates within 2 FIT points of the kept one "
-            f"with {worst['parameter']} {worst['sigmas']:.0f} σ away: the estimate depends on "
-            "the filter's tuning far beyond the sandwich's σ, a sign that the model class does "
-            "not hold this machine (a friction law it cannot draw, a missing term); the ± σ "
-            "include the near members' spread"
+            f"ensemble member {worst['member']} simulates within {spread['near_fit']:g} FIT "
+            f"points of the kept one with {worst['parameter']} {worst['sigmas']:.0f} σ away: "
+            "the estimate depends on the filter's tuning far beyond the sandwich's σ, "
+            "a sign that the model class does not hold this machine (a friction law it cannot "
+            "draw, a missing term); the ± σ include the near members' spread"
         )
     return out
 
@@ -216,8 +216,8 @@ def needed_terms(experiments: list[Experiment], c_m: float, rotary: bool) -> dic
     ``{"offset": (constant, share), "gravity": (g, q0, share, at_zero)}``, ``at_zero`` when the
     lowest point q0 lies within `GRAVITY_PHASE` of q = 0 (``model.gravity``'s ``g_c sin q``
     takes q = 0 hanging down). With a gravity term that `init` turns on (``at_zero``) the offset
-    comes too, as the constant fitted beside it and a share of None. Empty for records that never move. What `init` turns on and
-    `check`/`train` warn of (`torchfric.app.commands.columns.terms_found`, `missing_terms`)."""
+    comes too, as the constant fitted beside it and a share of None. Empty for records that never
+    move. What `init` turns on and `check`/`train` warn of (`torchfric.app.commands.columns.terms_found`, `missing_terms`)."""
     from ...estimators.settings import GRAVITY_PHASE, OFFSET_SHARE, static_terms
 
     try:

@@ -314,8 +314,8 @@ def member_spread(
     for _, other in near:
         d = (other - theta) * free
         widened += torch.outer(d, d)
-    record = {"members": [i for i, _ in near], "worst": {"member": worst[2],
-              "parameter": worst[1], "sigmas": worst[0]}}  # fmt: skip
+    record = {"members": [i for i, _ in near], "near_fit": NEAR_FIT, "limit": SPREAD_LIMIT,
+              "worst": {"member": worst[2], "parameter": worst[1], "sigmas": worst[0]}}  # fmt: skip
     return 0.5 * (widened + widened.T), record
 
 
