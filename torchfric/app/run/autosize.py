@@ -220,9 +220,11 @@ def auto_estimate(cfg: Config, train: list[Any], lugre: RunEstimate, *, timed: b
     config's unfitted start (its rate does not depend on θ; a timing that fails falls back on
     the nominal rate, as `estimate_run` does). The comparison's windows and pre-fits on the
     excerpts are left out: seconds on the records we measured (docs/results.md)."""
+    if lugre.seconds is None or lugre.rate is None:  # output error: no time to add to
+        return lugre
     static_cfg = with_dynamic(cfg, "none")
     static = estimate_run(static_cfg, train, config_model(static_cfg, train), timed=timed)
-    if lugre.seconds is None or lugre.rate is None or static.seconds is None or not static.rate:
+    if static.seconds is None or not static.rate:
         return lugre
     heads = comparison_heads(train) or held_out_heads(train, HOLDOUT)
     compared = sum(h.n for h in heads)
