@@ -45,6 +45,7 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
+from ...estimators.passes import DIVERGED
 from ...estimators.prefit import stick_band
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
@@ -276,7 +277,7 @@ def near_members(ensemble: Any) -> list[tuple[int, torch.Tensor]]:
     return [
         (m.index, ensemble.thetas[m.index].clone())
         for m in ensemble.members
-        if m.index != ensemble.best and m.status != "diverged" and math.isfinite(m.score)
+        if m.index != ensemble.best and m.status != DIVERGED and math.isfinite(m.score)
         and best - m.score <= NEAR_FIT
     ]  # fmt: skip
 
