@@ -569,3 +569,32 @@ def test_compiled_engine_gradient_equals_backprop_through_odeint(batch) -> None:
         for direction in ("forward", "backward"):
             chunk = rk4_chunk(model, direction)
             assert chunk.path == "native", chunk.why_not_native
+
+
+@pytest.mark.parametrize("dynamic", ["none", "lugre"])
+def test_a_batch_of_runs_equals_each_run_alone_to_the_bit(dynamic: str, worker_cache) -> None:  # type: ignore[no-untyped-def]
+    """A batch of simulations, each with its own input, start and θ (the auto comparison's
+    windows, the ensemble's members), runs through the member program (`rk4_members_chunk`:
+    traced for one run, four runs to a SIMD vector); every run's rows are the bits of that run
+    simulated alone through the single-run program, and the batch ran natively."""
+    from torchfric.accel.simulation import rk4_members_chunk
+
+    kw = {"dynamic": "lugre", "sigma0": 1200.0, "sigma1": 11.0} if dynamic == "lugre" else {}
+    model = ArmModel(OddTanhFriction(3, w1=[0.5, 5.0, 50.0], w2=[0.04, 0.05, 0.1]), 0.03, 0.01,
+                     c_m=16.0, **kw)  # fmt: skip
+    g = torch.Generator().manual_seed(3)
+    B, n = 6, 80  # six runs: a full vector of four and a last one with two lanes repeated
+    t = torch.arange(n) * 1e-3
+    u = 0.05 * torch.randn(n, B, generator=g)
+    x0 = torch.zeros(B, model.state_size)
+    x0[:, :2] = 0.1 * torch.randn(B, 2, generator=g)
+    theta = model.theta_vector().detach()
+    thetas = theta * (1 + 0.05 * torch.randn(B, theta.numel(), generator=g))
+    with torch.no_grad():
+        for th in (theta, thetas):
+            batch = simulate(model, t, u, x0, theta=th, substeps=4, engine="compiled")
+            assert rk4_members_chunk(model, th.dim() == 2).path == "native"
+            for j in range(B):
+                alone = simulate(model, t, u[:, j], x0[j], theta=th if th.dim() == 1 else th[j],
+                                 substeps=4, engine="compiled")  # fmt: skip
+                assert torch.equal(batch[:, j], alone), j

@@ -147,6 +147,7 @@ def make_chunk(
     member_consts: Sequence[bool] = (),
     key: str | None = None,
     device: torch.device | None = None,
+    member_xs: Sequence[bool] = (),
 ) -> Callable:
     """`fn` applied along chunks of samples as one compiled call, with an eager fallback.
 
@@ -171,8 +172,11 @@ def make_chunk(
     runs as the generated step on that GPU (`torchfric.accel.native.cuda`: one member per
     thread; the carry comes back on the device); where that path cannot run, the CPU paths
     above take over, announced once (`NativeCacheWarning`).
+
+    `member_xs` marks the per-sample inputs that are one per member (``(C, K, ...)``: a batch of
+    simulations, each under its own input); the CPU paths serve them, a CUDA `device` does not.
     """
-    if device is not None and device.type == "cuda":
+    if device is not None and device.type == "cuda" and not any(member_xs):
         from .native.cuda import on_device
 
         cpu = make_chunk(fn, options=options, native=native, members=members,
@@ -183,7 +187,8 @@ def make_chunk(
         return _tagged(inductor)
     from .native import NativeUnavailable, make_native_chunk
 
-    generated = make_native_chunk(fn, members=members, member_consts=tuple(member_consts), key=key)
+    generated = make_native_chunk(fn, members=members, member_consts=tuple(member_consts),
+                                  member_xs=tuple(member_xs), key=key)  # fmt: skip
     reasons: list[str] = []
 
     def chunk(carry, xs, valid, consts):  # type: ignore[no-untyped-def]

@@ -44,9 +44,10 @@ __all__ = [
 ]
 
 # Windows simulated in one batch by `window_errors`, always this many (the last batch repeats its
-# last window): one shape, so one generated simulation step serves every record (all 1800
-# windows of a 5-minute record's end at once were a 28 s compile, past the generated code's
-# size for LuGre, so an Inductor scan compiled anew in every process, and 280 MB kept).
+# last window). The batch runs through the member program (`rk4_members_chunk`), traced for one
+# window, so its size no longer shapes the generated code; until 2026-12-08 the batch was traced
+# whole, 64 copies of the step in one C function (LuGre: 11 s of gcc on a machine's first auto
+# run; all 1800 windows of a 5-minute record at once had been past the code's size ceiling).
 WINDOW_BATCH = 64
 
 

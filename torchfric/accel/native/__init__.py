@@ -182,17 +182,21 @@ def _require_cpu(tensors: Sequence[Tensor]) -> None:
 
 
 def _shape_key(
-    carry: tuple, xs: tuple, consts: tuple, flags: tuple, fixed: list, members: bool
-) -> tuple:
+    carry: tuple, xs: tuple, consts: tuple, flags: tuple, fixed: list, members: bool,
+    x_flags: tuple = (),
+) -> tuple:  # fmt: skip
     """What the generated code depends on: one member's shapes (ensembles of any size share the
-    code, and the trace), the dtypes, and the consts' 0/1 entries (`_structure`)."""
+    code, and the trace), the dtypes, and the consts' 0/1 entries (`_structure`); which
+    per-sample inputs are one per member (`x_flags`), when any is."""
     per_member = [c.shape[1:] if members else c.shape for c in carry]
-    per_member += [x.shape[1:] for x in xs]
+    x_flags = x_flags or (False,) * len(xs)
+    per_member += [x.shape[2:] if f else x.shape[1:] for x, f in zip(xs, x_flags, strict=True)]
     per_member += [
         k.shape[1:] if members and f else k.shape for k, f in zip(consts, flags, strict=True)
     ]
-    return (tuple(per_member), tuple(t.dtype for t in (*carry, *xs, *consts)),
-            tuple(tuple(sorted(f.items())) for f in fixed))  # fmt: skip
+    key = (tuple(per_member), tuple(t.dtype for t in (*carry, *xs, *consts)),
+           tuple(tuple(sorted(f.items())) for f in fixed))  # fmt: skip
+    return (*key, tuple(x_flags)) if any(x_flags) else key
 
 
 def _translate(
@@ -205,15 +209,19 @@ def _translate(
     fixed: list,
     members: bool,
     alias: str | None = None,
+    x_flags: tuple = (),
 ) -> _Built:
-    """Trace `fn` for one sample (and one member: the member axis kept at size 1), generate its
-    C and build it with the C compiler `cc` (`_build`); recorded under `alias` when one is
-    given. `NativeUnavailable` when it cannot be translated or built."""
+    """Trace `fn` for one sample (and one member: the member axis kept at size 1, also on the
+    per-member inputs `x_flags`), generate its C and build it with the C compiler `cc`
+    (`_build`); recorded under `alias` when one is given. `NativeUnavailable` when it cannot be
+    translated or built."""
     one_c = [c[:1] if members else c for c in carry]
     one_k = [k[:1] if (members and f) else k for k, f in zip(consts, flags, strict=True)]
+    x_flags = x_flags or (False,) * len(xs)
+    one_x = [x[0, :1] if f else x[0] for x, f in zip(xs, x_flags, strict=True)]
     src, shapes, dtypes, lanes = _source(
-        fn, one_c, [x[0] for x in xs], one_k,
-        flags if members else (False,) * len(consts), fixed, members=members,
+        fn, one_c, one_x, one_k,
+        flags if members else (False,) * len(consts), fixed, members=members, member_xs=x_flags,
     )  # fmt: skip
     lib, library = _build(src, cc)
     if alias is not None:
@@ -294,6 +302,7 @@ def make_native_chunk(
     *,
     members: bool = False,
     member_consts: Sequence[bool] = (),
+    member_xs: Sequence[bool] = (),
     key: str | None = None,
 ) -> Callable:
     """`torchfric.accel.make_chunk`'s ``chunk(carry, xs, valid, consts) -> (carry, outs)`` as
@@ -302,7 +311,9 @@ def make_native_chunk(
     With `members`, every carry tensor and each const flagged in `member_consts` has a leading
     member axis K; `fn` is traced for one member (that axis kept at size 1) and the members run
     independently, split across the cores (`thread_count`). Per-sample outputs then have shape
-    ``(C, K, ...)``, as the scan of the batched function gives them. Raises
+    ``(C, K, ...)``, as the scan of the batched function gives them; so do the per-sample
+    inputs flagged in `member_xs` (one per member: a batch of simulations, each under its own
+    input), which the others are not. Raises
     `NativeUnavailable` (before touching anything) when the function cannot be translated,
     or with the reason "TORCHFRIC_NATIVE=0" when that switch is set (read at every call);
     `torchfric.errors.TorchfricError`, here already, when ``$TORCHFRIC_NATIVE`` is neither
@@ -326,10 +337,11 @@ def make_native_chunk(
         carry, xs, consts = tuple(carry), tuple(xs), tuple(consts)
         _require_cpu((*carry, *xs, *consts, valid))
         flags = tuple(member_consts) + (False,) * (len(consts) - len(member_consts))
+        x_flags = tuple(member_xs) + (False,) * (len(xs) - len(member_xs))
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
         fixed = structures(consts, [members and f for f in flags])
-        shape = _shape_key(carry, xs, consts, flags, fixed, members)
+        shape = _shape_key(carry, xs, consts, flags, fixed, members, x_flags)
         if shape in failed:  # this shape was tried: the same reason, without tracing again
             raise failed[shape]
         if shape not in built:
@@ -338,7 +350,7 @@ def make_native_chunk(
             lib = None if alias is None else _known(alias)
             try:
                 built[shape] = lib or _translate(
-                    fn, cc, carry, xs, consts, flags, fixed, members, alias
+                    fn, cc, carry, xs, consts, flags, fixed, members, alias, x_flags
                 )
             except NativeUnavailable as exc:
                 failed[shape] = exc

@@ -5,7 +5,11 @@ one C function ``torchfric_chunk(m0, m1, K, C, p)`` that runs samples 0…C−1 
 one member at a time in scalar code (`_scalar_program`), or, for ensembles, `_LANES` members per
 SIMD vector (`_vector_program`, GCC vector types). The scalar
 program also has a CUDA form (``target="cuda"``): the same statements in a kernel whose threads
-are the members (`torchfric.accel.native.cuda`).
+are the members (`torchfric.accel.native.cuda`). A batch of simulations, each under its own
+input, is a member program too: its per-member inputs are read lane by lane (``member_xs``).
+
+Why this size: the two programs share the trace, the symbol graph and the argument layout, and
+each emitter is one loop over the same graph; split apart they would restate the layout.
 """
 
 from __future__ import annotations
@@ -84,6 +88,7 @@ def _source(
     *,
     members: bool = False,
     target: str = "c",
+    member_xs: Sequence[bool] = (),
 ) -> tuple[str, list[tuple[int, ...]], list[torch.dtype], int]:
     """C source of the chunk loop; also the per-sample shapes and dtypes of the outputs and the
     members per vector (1: scalar code).
@@ -92,7 +97,9 @@ def _source(
     maps flat entries of const i to the values they are compiled in as (`_structure`). With
     `members`, the code runs `_LANES` members at once in SIMD vectors (`_vector_program`);
     otherwise one member at a time (`_scalar_program`). With
-    ``target="cuda"``, the scalar program as a CUDA kernel (one member per thread)."""
+    ``target="cuda"``, the scalar program as a CUDA kernel (one member per thread).
+    `member_xs[i]` marks per-sample input i as one per member (``(C, K, ...)``, e.g. each
+    window's own input in a batch of simulations): the SIMD program only."""
     from torch.fx.experimental.proxy_tensor import make_fx
 
     n_c, n_x = len(carry), len(xs)
@@ -138,7 +145,9 @@ def _source(
             f"the step is {len(order)} scalar operations, above the {_MAX_STATEMENTS} the "
             "generated code serves"
         )
-    io = _IO(carry, xs, consts, member_consts, out_shapes, out_dtypes)
+    io = _IO(carry, xs, consts, member_consts, out_shapes, out_dtypes, member_xs)
+    if any(io.member_xs) and (target == "cuda" or not members):
+        raise NativeUnavailable("per-member inputs are served by the CPU's member program only")
     if target == "cuda":
         return _scalar_program(graph, order, outputs, io, cuda=True), out_shapes, out_dtypes, 1
     if members:
@@ -149,9 +158,10 @@ def _source(
 class _IO:
     """The chunk function's arguments, as the emitters need them."""
 
-    def __init__(self, carry, xs, consts, member_consts, out_shapes, out_dtypes):  # type: ignore[no-untyped-def]
+    def __init__(self, carry, xs, consts, member_consts, out_shapes, out_dtypes, member_xs=()):  # type: ignore[no-untyped-def]
         self.carry = [(_spec(c), c.numel()) for c in carry]
         self.xs = [(_spec(x), x.numel()) for x in xs]
+        self.member_xs = [bool(b) for b in member_xs] + [False] * (len(xs) - len(member_xs))
         self.consts = [
             (_spec(k), k.numel(), bool(b)) for k, b in zip(consts, member_consts, strict=True)
         ]
@@ -401,12 +411,21 @@ def _vector_program(graph: _Graph, order: list[int], outputs: list, io: _IO) -> 
             return f"C{idx}[{j}]"
         if kind == "k" and io.consts[idx][2]:
             return f"K{idx}[{j}]"
+        if kind == "x" and io.member_xs[idx]:
+            return f"X{idx}[{j}]"
         code = (io.xs[idx] if kind == "x" else io.consts[idx])[0][0]
         return f"bd({name}[{j}])" if code == "d" else f"bi({name}[{j}])"
 
     lines.append("    for (int64_t t = 0; t < C; ++t) {")
-    for i, ((_, ctype), size) in enumerate(io.xs):
-        lines.append(f"      const {ctype} *x{i} = xs{i}_base + t * {size};")
+    for i, ((code, ctype), size) in enumerate(io.xs):
+        if not io.member_xs[i]:
+            lines.append(f"      const {ctype} *x{i} = xs{i}_base + t * {size};")
+            continue
+        # one input per member, stored (C, K, ...): each lane reads its member's row
+        val = f"xs{i}_base[(t * K + mem[l]) * {size} + j]"
+        lines.append(f"      {vt[code]} X{i}[{max(size, 1)}];")
+        lines.append(f"      for (int j = 0; j < {size}; ++j) for (int l = 0; l < {w}; ++l) "
+                     f"X{i}[j][l] = {f'({val} ? -1 : 0)' if code == 'b' else val};")  # fmt: skip
     for i, ((code, _), size) in enumerate(io.carry):
         lines.append(f"      {vt[code]} N{i}[{max(size, 1)}];")
     for i in order:
