@@ -266,6 +266,15 @@ def test_summary_lines_say_why_the_run_stopped() -> None:
     assert "none validated better than epoch 0" in "\n".join(
         summary_lines({**oe, "best_pass": 0}, files)
     )
+    # an ensemble's passes are its kept member's: the others may have run to the limit
+    ens = {**base, "ensemble": {"members": 9, "status": {"converged": 1, "running": 8}, "best": 3,
+                                "best_q_scale": 10.0, "best_r_scale": 1.0,
+                                "selected_by": "validation_and_train_fit"}}  # fmt: skip
+    lines = summary_lines({**ens, "stopped": "converged"}, files)
+    assert "1 converged, 8 ran every pass" in lines[1]
+    assert any(line.startswith("the kept member converged in 4 passes") for line in lines)
+    assert any(line.startswith("NOT converged (the kept member): the last of all 4 passes")
+               for line in summary_lines({**ens, "stopped": "budget"}, files))  # fmt: skip
 
 
 def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(

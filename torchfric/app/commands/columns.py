@@ -414,7 +414,8 @@ def terms_found(
 _OFFSET = (
     "the record's inverse dynamics leave a constant force or torque of {0:.4g} (c_m·u fitted "
     "by inertia, viscous and Coulomb terms: a constant takes {1:.0%} of the residual), as "
-    "gravity on a vertical axis does: model.offset is on"
+    "gravity on a vertical axis, a cable's pull or an amplifier's offset leaves one: "
+    "model.offset is on"
 )
 _OFFSET_ARM = (  # beside gravity: `needed_terms`
     "beside the unbalanced arm's torque below, the record's inverse dynamics leave a constant "

@@ -391,6 +391,9 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     if (unit, reason) == ("epoch", "budget"):
         reason = "budget_oe" if best is None or best >= (total or 0) else "budget_oe_early_best"
     stopped = _STOPPED.get(reason, "")
+    if stopped and metrics.get("ensemble") and unit == "pass":  # the kept member's passes
+        stopped = ("the kept member " + stopped if stopped.startswith("converged")
+                   else stopped.replace("NOT converged:", "NOT converged (the kept member):", 1))  # fmt: skip
     if stopped:
         units = unit + ("es" if unit == "pass" else "s")
         lines.append(
