@@ -312,6 +312,7 @@ def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(
     # a record simulated worse than a constant: the offset hint only when there is no offset
     bad = {**metrics, "validation": {"v": {"fit_q": -93.0, "fit_qdot": 10.0}}}
     assert "model.offset=0.0" in " ".join(result_warnings(cfg, model, bad, "prefit"))
+    assert "the speeds (FIT on q̇ 10.0 %) too" in " ".join(result_warnings(cfg, model, bad, "prefit"))
     with_offset = Config.load(rig_config(tmp_path, "off", model={"offset": 0.0}))
     assert "model.offset" not in " ".join(result_warnings(with_offset, model, bad, "prefit"))
 

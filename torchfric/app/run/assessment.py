@@ -130,6 +130,33 @@ def _uninformed(
     ]
 
 
+def _below_constant(cfg: Config, metrics: dict[str, Any]) -> list[str]:
+    """`result_warnings`' lines on records whose open-loop simulation scores a FIT on q below 0
+    (or none at all)."""
+    out: list[str] = []
+    for group in ("validation", "test", "identification"):
+        for name, m in metrics.get(group, {}).items():
+            fit = m.get("fit_q")
+            if fit is None or not fit == fit or fit < 0.0:
+                hint = (
+                    "; when the simulation drifts one way, a constant force or torque may be "
+                    "missing (gravity on a tilted axis, a cable, an amplifier offset): try "
+                    "--set model.offset=0.0"
+                    if cfg.model.offset is None
+                    else ""
+                )
+                fv = m.get("fit_qdot")
+                speed = "" if fv is None or not fv == fv else f" (FIT on q̇ {fv:.1f} %)"
+                out.append(
+                    f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
+                    f"worse than a constant); the model's open-loop simulation does not follow "
+                    f"this record{hint}. A record of an axis that sticks drifts so even under its "
+                    f"true model (each error in where it stops adds to the next): judge by the "
+                    f"report's validation figure and the speeds{speed} too"
+                )
+    return out
+
+
 def result_warnings(
     cfg: Config,
     final: ArmModel,
@@ -160,21 +187,7 @@ def result_warnings(
     compared = (metrics.get("dynamics") or {}).get("chosen") == "none"
     out += _active_friction(final, v95, compared)
     out += _uninformed(cfg, final, covariance, start, metrics)
-    for group in ("validation", "test", "identification"):
-        for name, m in metrics.get(group, {}).items():
-            fit = m.get("fit_q")
-            if fit is None or not fit == fit or fit < 0.0:
-                hint = (
-                    "; when the simulation drifts one way, a constant force or torque may be "
-                    "missing (gravity on a tilted axis, a cable, an amplifier offset): try "
-                    "--set model.offset=0.0"
-                    if cfg.model.offset is None
-                    else ""
-                )
-                out.append(
-                    f"{group} {name}: FIT on q is {fit if fit is None else f'{fit:.1f} %'} (below 0: "
-                    f"worse than a constant); the model does not simulate this record{hint}"
-                )
+    out += _below_constant(cfg, metrics)
     if (
         cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes
         and metrics.get("converged") is False

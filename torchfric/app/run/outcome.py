@@ -355,6 +355,31 @@ def _g(x: float | None) -> str:
     return "?" if x is None else f"{x:.2g}"
 
 
+def _stopped_lines(
+    metrics: dict[str, Any], unit: str, total: int | None, best: int | None, on: str | None
+) -> list[str]:
+    """`summary_lines`' line on why the passes or epochs ended (`_STOPPED`), if any; an
+    ensemble's is its kept member's."""
+    reason = metrics.get("stopped", "")
+    if (unit, reason) == ("epoch", "budget"):
+        reason = "budget_oe" if best is None or best >= (total or 0) else "budget_oe_early_best"
+    stopped = _STOPPED.get(reason, "")
+    if not stopped:
+        return []
+    if metrics.get("ensemble") and unit == "pass":  # the kept member's passes
+        stopped = ("the kept member " + stopped if stopped.startswith("converged")
+                   else stopped.replace("NOT converged:", "NOT converged (the kept member):", 1))  # fmt: skip
+    k = len(metrics["parameters"])
+    return [stopped.format(
+        unit=unit, total=total, units=unit + ("es" if unit == "pass" else "s"),
+        more=2 * (total or 1), best=best, change=_g(metrics.get("last_change")),
+        gain=_g(metrics.get("last_gain")), tolerance=_g(metrics.get("tolerance")), k=k,
+        limit=_g((metrics.get("tolerance") or 0.0) * k),
+        kept_by=_BUDGET_KEPT_BY.get(on)
+        or ("validated best" if metrics.get("validation") else "fit the data best"),
+    )]  # fmt: skip
+
+
 def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
     """The human summary of a finished run: what was kept and why, parameters ± σ, validation
     FITs, convergence, warnings, and the files written (`files`: label → path)."""
@@ -387,31 +412,7 @@ def summary_lines(metrics: dict[str, Any], files: dict[str, str]) -> list[str]:
             else "highest likelihood"
         )
         lines.append(f"kept {unit} {best} of {total} ({why})")
-    reason = metrics.get("stopped", "")
-    if (unit, reason) == ("epoch", "budget"):
-        reason = "budget_oe" if best is None or best >= (total or 0) else "budget_oe_early_best"
-    stopped = _STOPPED.get(reason, "")
-    if stopped and metrics.get("ensemble") and unit == "pass":  # the kept member's passes
-        stopped = ("the kept member " + stopped if stopped.startswith("converged")
-                   else stopped.replace("NOT converged:", "NOT converged (the kept member):", 1))  # fmt: skip
-    if stopped:
-        units = unit + ("es" if unit == "pass" else "s")
-        lines.append(
-            stopped.format(
-                unit=unit,
-                total=total,
-                units=units,
-                more=2 * (total or 1),
-                best=best,
-                change=_g(metrics.get("last_change")),
-                gain=_g(metrics.get("last_gain")),
-                tolerance=_g(metrics.get("tolerance")),
-                k=len(metrics["parameters"]),
-                limit=_g((metrics.get("tolerance") or 0.0) * len(metrics["parameters"])),
-                kept_by=_BUDGET_KEPT_BY.get(on)
-                or ("validated best" if metrics.get("validation") else "fit the data best"),
-            )  # fmt: skip
-        )
+    lines += _stopped_lines(metrics, unit, total, best, on)
     table = metrics["parameters"]
     if any(v["std"] is not None for v in table.values()):
         lines.append("parameters (value ± σ):")
