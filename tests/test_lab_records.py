@@ -190,6 +190,27 @@ def test_a_row_of_units_under_the_names_joins_them(tmp_path, record, monkeypatch
         load_experiment(words)
 
 
+def test_text_in_one_field_of_a_decimal_comma_file_is_named_by_its_line(tmp_path, record) -> None:  # type: ignore[no-untyped-def]
+    """One field of text in a decimal-comma file (a unit typed into a cell, an error word from
+    the logger) is the one the error names, with its line and the count of such fields; the
+    good rows above it are not blamed."""
+    german = _german(tmp_path / "plain.csv", record)
+    lines = german.read_bytes().decode().split("\r\n")
+    fields = lines[2000].split(";")
+    lines[2000] = ";".join([fields[0], fields[1] + " V", fields[2]])  # line 2001
+    lines[2500] = ";".join([*lines[2500].split(";")[:2], "Fehler"])  # line 2501
+    bad = tmp_path / "text.csv"
+    bad.write_bytes("\r\n".join(lines).encode())
+    u_text = repr(fields[1] + " V")
+    with pytest.raises(TorchfricError, match=rf"line 2001: {u_text} in column 'Strom \[A\]' "
+                       r"is not a number \(1 in all; read as semicolon-separated, decimal comma\)"):  # fmt: skip
+        load_experiment(bad)
+    lines[2000] = ";".join(fields)
+    bad.write_bytes("\r\n".join(lines).encode())
+    with pytest.raises(TorchfricError, match=r"line 2501: 'Fehler' in column 'Winkel \[deg\]'"):
+        load_experiment(bad)
+
+
 PREAMBLE = ["Name;X-Achse Trace", "Datei;C:\\TwinCAT\\Scope\\xachse.tcscopex",
             "Startzeit;28.11.2026 09:14:02", "Abtastrate;1 kHz", ""]  # fmt: skip
 

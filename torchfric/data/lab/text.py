@@ -368,7 +368,7 @@ def _parse(path: pathlib.Path, names: list[str], fmt: TextFormat) -> np.ndarray:
         if clock:
             values = _clock_seconds(col)
         else:
-            values = pd.to_numeric(col, errors="coerce").to_numpy(np.float64, na_value=np.nan)
+            values = _numbers(col, fmt.decimal)
         bad = np.flatnonzero(np.isnan(values) & col.notna().to_numpy())
         if bad.size:
             row = int(bad[0])
@@ -385,6 +385,19 @@ def _parse(path: pathlib.Path, names: list[str], fmt: TextFormat) -> np.ndarray:
             )
         out[:, j] = values
     return out
+
+
+def _numbers(col, decimal: str) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """A column as floats, NaN where a field is not a number. One field of text leaves pandas'
+    whole column as text, its decimal commas unread: they are read here, so that only the
+    fields that are not numbers are NaN (and the error names the first of them, not the first
+    row)."""
+    import pandas as pd
+
+    if not pd.api.types.is_numeric_dtype(col):  # text (object, or pandas' string dtype)
+        text = col.astype("string").str.strip()
+        col = text.str.replace(decimal, ".", regex=False) if decimal != "." else text
+    return pd.to_numeric(col, errors="coerce").to_numpy(np.float64, na_value=np.nan)
 
 
 def _clock_seconds(col) -> np.ndarray:  # type: ignore[no-untyped-def]
