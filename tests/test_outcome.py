@@ -315,6 +315,16 @@ def test_warnings_name_what_the_data_left_at_its_prior_and_a_missing_offset(
     assert "the speeds (FIT on q̇ 10.0 %) too" in " ".join(result_warnings(cfg, model, bad, "prefit"))
     with_offset = Config.load(rig_config(tmp_path, "off", model={"offset": 0.0}))
     assert "model.offset" not in " ".join(result_warnings(with_offset, model, bad, "prefit"))
+    # an inertia 50 % from the pre-fit's and 15 σ from it: two estimates the σ do not hold
+    def apart(value: float, std: float, init: str = "prefit") -> list[str]:
+        m = {**metrics, "inertia": value, "parameters": {"inertia": {"value": value, "std": std}}}
+        return [w for w in result_warnings(cfg, model, m, init) if "from the pre-fit's" in w]
+
+    (far,) = apart(0.045, 0.001)
+    assert "inertia 0.045 ± 0.001 is +50% from the pre-fit's 0.03 (+15 σ)" in far
+    assert apart(0.045, 0.01) == []  # within 2 σ of it
+    assert apart(0.033, 1e-6) == []  # 10 %: within what a pre-fit's own bias is
+    assert apart(0.02, 1e-6) != [] and apart(0.045, 0.001, "initial value") == []
 
 
 def test_a_data_file_given_as_the_config_says_so(
