@@ -207,6 +207,9 @@ class ModelConfig(TableSection):
             fallback of the pre-fit). For "polytopic" the runner ignores `viscous`: the paper's
             polytopic model carries its own slopes and has no separate b.
         offset: ``None`` = no constant offset term; a number enables it with that initial guess.
+            It is subtracted from the motor's force: ``M q̈ = c_m u − friction − offset``, so a
+            load pulling towards negative q (gravity on a vertical axis whose q points up) has
+            a positive offset, m·g.
         gravity: ``None`` = no ``g_c sin q`` term; a number (> 0) enables it.
         asymmetric: ``None`` = no even viscous term; a number enables ``a |q̇|`` with that
             initial guess (direction-dependent viscous slopes b ± a, `torchfric.arm.ArmModel`).
