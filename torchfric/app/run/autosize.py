@@ -320,7 +320,8 @@ def _bristle_lines(dynamics: Mapping[str, Any], t: float, gain: float) -> list[s
         "" if seen
         else ": they never slide within the records (σ0 → 0: a spring, not friction)"
         if not travel < span
-        else ": the record cannot tell σ0 from ∞ (static)"
+        else ": at the fitted σ0 the record cannot tell σ0 from ∞ (static); this is the fit's "
+        "travel, which a fit whose σ0 ran away shares with a machine without bristles"
     )  # fmt: skip
     lines = [
         f"  LuGre's bristles travel 2 g(0)/σ0 = {travel:.3g} through a reversal, "
