@@ -209,6 +209,11 @@ def test_text_in_one_field_of_a_decimal_comma_file_is_named_by_its_line(tmp_path
     bad.write_bytes("\r\n".join(lines).encode())
     with pytest.raises(TorchfricError, match=r"line 2501: 'Fehler' in column 'Winkel \[deg\]'"):
         load_experiment(bad)
+    # a point among decimal commas is not read as a decimal point (1.234 may mean 1234)
+    lines[2500] = ";".join([*lines[2500].split(";")[:2], "1.234"])
+    bad.write_bytes("\r\n".join(lines).encode())
+    with pytest.raises(TorchfricError, match=r"line 2501: '1\.234' in column 'Winkel \[deg\]'"):
+        load_experiment(bad)
 
 
 PREAMBLE = ["Name;X-Achse Trace", "Datei;C:\\TwinCAT\\Scope\\xachse.tcscopex",

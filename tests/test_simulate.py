@@ -598,3 +598,12 @@ def test_a_batch_of_runs_equals_each_run_alone_to_the_bit(dynamic: str, worker_c
                 alone = simulate(model, t, u[:, j], x0[j], theta=th if th.dim() == 1 else th[j],
                                  substeps=4, engine="compiled")  # fmt: skip
                 assert torch.equal(batch[:, j], alone), j
+        # one input or one θ for all runs is broadcast; a batch of another size is refused
+        shared = simulate(model, t, u[:, :1], x0, theta=theta[None], substeps=4, engine="compiled")
+        wide = simulate(model, t, u[:, :1].expand(-1, B), x0, theta=theta, substeps=4,
+                        engine="compiled")  # fmt: skip
+        assert torch.equal(shared, wide)
+        with pytest.raises(TorchfricError, match=r"a batch of 6 simulations .* u with 8 runs"):
+            simulate(model, t, torch.zeros(n, 8), x0, theta=theta, substeps=4, engine="compiled")
+        with pytest.raises(TorchfricError, match=r"theta with 2 runs"):
+            simulate(model, t, u, x0, theta=thetas[:2], substeps=4, engine="compiled")

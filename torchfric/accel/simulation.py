@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from ..models.simulate import odeint_engine, register_engine, sample_grid, solver_step
 from .chunks import chunk_options, fused_matmul, make_chunk, run_chunks, step_key, structure_key
@@ -109,17 +110,25 @@ def _sampled_states(
     ``(n − 1, [B])`` of `t`, `substeps` solver steps per interval on `sample_grid`'s grid:
     `_rk4_states`' steps (a batch through `rk4_members_chunk`), run by blocks of about
     `_BLOCK` solver steps that keep only each interval's last state (a copy: a strided view
-    would keep the whole block's sub-steps alive). Each block builds its own piece of the grid: the whole grid and its steps are two
-    arrays of ``(n − 1)·substeps`` (1.2 GB for a 20-minute record at 64 sub-steps). A
+    would keep the whole block's sub-steps alive). Each block builds its own piece of the grid:
+    the whole grid and its steps are two arrays of ``(n − 1)·substeps`` (1.2 GB for a 20-minute record at 64 sub-steps). A
     simulation needs no gradient through the sub-steps, and keeping them cost ``substeps``
     times the result: a 20-minute record's 9-member selection at 64 sub-steps grew by 0.46 GB
     a block of 50 k intervals, to 1.9 GiB, when the views kept them. The same steps in the
     same order: the same numbers to the last bit (a block's grid is the whole grid's piece,
     element for element)."""
-    batch = x0.dim() == 2
-    if batch:
+    if x0.dim() == 2:  # a batch of B runs: u and θ with B rows, or one for all
+        B = x0.shape[0]
+        u = u[:, None] if u.dim() == 1 else u
+        theta = theta[0] if theta.dim() == 2 and theta.shape[0] == 1 else theta
+        rows = {"u": u.shape[1], **({"theta": theta.shape[0]} if theta.dim() == 2 else {})}
+        wrong = {k: n for k, n in rows.items() if n not in (1, B)}
+        if wrong:
+            raise TorchfricError(f"a batch of {B} simulations (x0 {tuple(x0.shape)}) got "
+                                 f"{', '.join(f'{k} with {n} runs' for k, n in wrong.items())}"
+                                 f"; give each {B} runs or 1 for all")  # fmt: skip
+        u = u.expand(-1, B)
         chunk = rk4_members_chunk(model, theta.dim() == 2)
-        u = u if u.dim() == 2 else u[:, None].expand(-1, x0.shape[0])
     else:
         chunk = rk4_chunk(model)
     out, x = [x0.unsqueeze(0)], x0.clone()

@@ -340,6 +340,12 @@ def make_native_chunk(
         x_flags = tuple(member_xs) + (False,) * (len(xs) - len(member_xs))
         K = carry[0].shape[0] if members else 1
         C = valid.shape[0]
+        if members and (
+            any(x.shape[1] != K for x, f in zip(xs, x_flags, strict=True) if f)
+            or any(k.shape[0] != K for k, f in zip(consts, flags, strict=True) if f)
+        ):
+            # the code reads each member's row: one missing would be read past the buffer
+            raise NativeUnavailable(f"per-member inputs without the carry's {K} members")
         fixed = structures(consts, [members and f for f in flags])
         shape = _shape_key(carry, xs, consts, flags, fixed, members, x_flags)
         if shape in failed:  # this shape was tried: the same reason, without tracing again

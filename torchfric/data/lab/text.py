@@ -396,7 +396,10 @@ def _numbers(col, decimal: str) -> np.ndarray:  # type: ignore[no-untyped-def]
 
     if not pd.api.types.is_numeric_dtype(col):  # text (object, or pandas' string dtype)
         text = col.astype("string").str.strip()
-        col = text.str.replace(decimal, ".", regex=False) if decimal != "." else text
+        if decimal != ".":  # a point where commas are decimal is not read as one (1.234: 1234?)
+            text = text.where(~text.str.contains(".", regex=False).fillna(False))
+            text = text.str.replace(decimal, ".", regex=False)
+        col = text
     return pd.to_numeric(col, errors="coerce").to_numpy(np.float64, na_value=np.nan)
 
 
