@@ -183,13 +183,12 @@ def _require_cpu(tensors: Sequence[Tensor]) -> None:
 
 def _shape_key(
     carry: tuple, xs: tuple, consts: tuple, flags: tuple, fixed: list, members: bool,
-    x_flags: tuple = (),
+    x_flags: tuple,
 ) -> tuple:  # fmt: skip
     """What the generated code depends on: one member's shapes (ensembles of any size share the
     code, and the trace), the dtypes, and the consts' 0/1 entries (`_structure`); which
     per-sample inputs are one per member (`x_flags`), when any is."""
     per_member = [c.shape[1:] if members else c.shape for c in carry]
-    x_flags = x_flags or (False,) * len(xs)
     per_member += [x.shape[2:] if f else x.shape[1:] for x, f in zip(xs, x_flags, strict=True)]
     per_member += [
         k.shape[1:] if members and f else k.shape for k, f in zip(consts, flags, strict=True)
@@ -208,8 +207,8 @@ def _translate(
     flags: tuple,
     fixed: list,
     members: bool,
-    alias: str | None = None,
-    x_flags: tuple = (),
+    alias: str | None,
+    x_flags: tuple,
 ) -> _Built:
     """Trace `fn` for one sample (and one member: the member axis kept at size 1, also on the
     per-member inputs `x_flags`), generate its C and build it with the C compiler `cc`
@@ -217,7 +216,6 @@ def _translate(
     translated or built."""
     one_c = [c[:1] if members else c for c in carry]
     one_k = [k[:1] if (members and f) else k for k, f in zip(consts, flags, strict=True)]
-    x_flags = x_flags or (False,) * len(xs)
     one_x = [x[0, :1] if f else x[0] for x, f in zip(xs, x_flags, strict=True)]
     src, shapes, dtypes, lanes = _source(
         fn, one_c, one_x, one_k,

@@ -108,7 +108,7 @@ def make_cuda_chunk(
         # the 0/1 structure is read on the CPU (consts usually are there: `.cpu()` is then them)
         host = tuple(k if k.device.type == "cpu" else k.detach().cpu() for k in consts)
         fixed = structures(host, flags)
-        shape = _shape_key(carry, xs, host, flags, fixed, True)
+        shape = _shape_key(carry, xs, host, flags, fixed, True, (False,) * len(xs))
         if shape in failed:
             raise failed[shape]
         if shape not in built:
