@@ -12,8 +12,7 @@ Each member is an independent iterative off-line EKF exactly as in `identify_ekf
 per-experiment state reset, per-member early stop on the θ tolerance and per-member rollback of a
 pass that lowers its innovation log-likelihood. A member whose belief becomes unhealthy (NaN,
 negative variance, θ out of the box) is frozen at its last good pass and marked diverged; the
-others carry on. No per-sample host synchronisation: health flags are folded into masks on the
-device and read once per stretch.
+others carry on. Health flags are folded into masks on the device, read once per stretch.
 
 After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇ FIT of
 an open-loop simulation (all members simulated as one batch), averaged over the validation
@@ -27,6 +26,7 @@ together; the pass ledger and the selection are already apart (`passes`, `select
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -64,6 +64,7 @@ from .passes import (
     prepared,
     run_passes,
 )
+from .propagation import finer_steps
 from .selection import select_by_fit
 from .settings import EKFTuning, EnsembleSpec
 
@@ -336,19 +337,17 @@ def identify_ekf_ensemble(
         TorchfricError: bad inputs, or every member diverged (the message says where).
     """
     t_start = time.perf_counter()
-    k = model.num_parameters
-    exps, tuning = prepared(experiments, tuning or EKFTuning(), k, "identify_ekf_ensemble")
+    k, auto = model.num_parameters, tuning is not None and tuning.substeps == "auto"
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), model, "identify_ekf_ensemble")
     thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(k, model.state_size)
     Qk, Rk = Q * q_scale[:, None, None], R * r_scale[:, None, None]
     P_theta = tuning.initial_P_theta(model, thetas)
-    step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile, device=device)
-    data = measured_data(exps, tuning.measure)
-    total = sum(e.n for e in exps)
-    f = Filtering(
-        data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, progress_every, total
-    )
+    make = functools.partial(make_masked_step, model, compile=tuning.compile, device=device)
+    data, total = measured_data(exps, tuning.measure), sum(e.n for e in exps)
+    f = Filtering(data, Qk, P0_xx, H, Rk, make(tuning.substeps), tuning.theta_bound, callback,
+                  progress_every, total, tuning.substeps)  # fmt: skip
     if start is not None:
         ledger = PassLedger.from_state(model, tuning, start)
     else:
@@ -364,7 +363,8 @@ def identify_ekf_ensemble(
         }
         return callback.on_ensemble_pass_end(p, {**state, **ledger.state()})
 
-    run_passes(ledger, tuning.passes, lambda p: _filter_members(p, ledger, f), on_pass_end)
+    one_pass = finer_steps(lambda p: _filter_members(p, ledger, f), f, ledger, exps, make, auto)
+    run_passes(ledger, tuning.passes, one_pass, on_pass_end)
     engine = "compiled" if tuning.compile else "odeint"
     choice = (validation, max_substeps, engine)
     return _finish(model, exps, ledger, q_scale, r_scale, choice, t_start)

@@ -10,6 +10,7 @@ those of `torchfric.estimators.passes` (shared with the ensemble), for one membe
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -30,6 +31,7 @@ from .passes import (
     prepared,
     run_passes,
 )
+from .propagation import finer_steps
 from .settings import EKFTuning
 
 __all__ = ["EKFTuning", "PassRecord", "EKFResult", "EKFCallback", "identify_ekf"]
@@ -60,17 +62,18 @@ def identify_ekf(
         DivergenceError: naming pass, experiment, sample and reason; `.last_good` holds the
             result after the last completed pass (or the initial guess).
     """
-    exps, tuning = prepared(
-        experiments, tuning or EKFTuning(), model.num_parameters, "identify_ekf"
-    )
+    auto = tuning is not None and tuning.substeps == "auto"
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), model, "identify_ekf")
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     data = measured_data(exps, tuning.measure)
-    step_fn = make_step(make_propagator(model, tuning.substeps), compile=tuning.compile)
+
+    def make(n: int) -> Any:
+        return make_step(make_propagator(model, n), compile=tuning.compile)
+
     total = sum(e.n for e, _, _ in data)
-    f = Filtering(
-        data, Q, P0_xx, H, R, step_fn, tuning.theta_bound, callback, progress_every, total
-    )
+    f = Filtering(data, Q, P0_xx, H, R, make(tuning.substeps), tuning.theta_bound, callback,
+                  progress_every, total, tuning.substeps)  # fmt: skip
     if start is not None:
         theta, P_theta, history = start[0], start[1], list(start[2])
     else:
@@ -81,7 +84,8 @@ def identify_ekf(
     def on_pass_end(p: int, records: list[PassRecord | None]) -> bool | None:
         return callback.on_pass_end(records[0], ledger.result(0))
 
-    run_passes(ledger, tuning.passes, lambda p: _filter_pass(p, ledger, f), on_pass_end)
+    one_pass = finer_steps(lambda p: _filter_pass(p, ledger, f), f, ledger, exps, make, auto)
+    run_passes(ledger, tuning.passes, one_pass, on_pass_end)
     return ledger.result(0)
 
 

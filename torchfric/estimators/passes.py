@@ -45,6 +45,7 @@ from ..errors import TorchfricError
 from ..models.arm import ArmModel
 from .ekf import MEASUREMENTS
 from .observers import Callback
+from .propagation import resolve_substeps
 from .settings import EKFTuning
 
 __all__ = [
@@ -114,8 +115,9 @@ class EKFResult:
 
 @dataclass
 class Filtering:
-    """What every pass filters with, fixed for the whole run. For an ensemble, Q `(K, n, n)` and
-    R `(K, m, m)` are per member and `step_fn` is its masked batched step."""
+    """What every pass filters with, fixed for the whole run (but for the step's RK4
+    `substeps`, which ``"auto"`` raises between passes: `finer_steps`). For an ensemble, Q
+    `(K, n, n)` and R `(K, m, m)` are per member and `step_fn` is its masked batched step."""
 
     data: list[tuple[Experiment, Tensor, Tensor]]  # (experiment, u (N,), y (N, m)), float64
     Q: Tensor
@@ -127,6 +129,7 @@ class Filtering:
     callback: Callback
     every: int  # samples between progress reports (where the filter reports per sample)
     total: int  # samples per pass
+    substeps: int = 1  # RK4 sub-steps per sample of `step_fn`
 
     @property
     def states(self) -> int:
@@ -353,11 +356,14 @@ def experiment_list(
 
 
 def prepared(
-    experiments: Experiment | Sequence[Experiment], tuning: EKFTuning, k: int, who: str
+    experiments: Experiment | Sequence[Experiment], tuning: EKFTuning, model: ArmModel, who: str
 ) -> tuple[list[Experiment], EKFTuning]:
     """`experiment_list`, and `tuning` resolved against those experiments (`EKFTuning.resolved`:
-    relative variances at the data's velocity scale)."""
-    exps = experiment_list(experiments, tuning, k, who)
+    relative variances at the data's velocity scale; ``substeps = "auto"`` for `model` at its
+    own θ, `resolve_substeps`)."""
+    exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
+    tuning = resolve_substeps(tuning, model, exps)
+    exps = experiment_list(exps, tuning, model.num_parameters, who)
     return exps, tuning.resolved(exps)
 
 

@@ -1,20 +1,29 @@
 """The EKF's prediction maps: the sample-interval flow ``propagate(z, u, dt) -> (x_next, Φ_x)``
 of a model, with the exact Jacobian of its integrator (`make_propagator`), and the small-matrix
 product the filter uses (`matmul_for`). `torchfric.estimators.ekf` builds the filter on them.
+How many RK4 sub-steps a sample takes under ``substeps = "auto"`` (`resolve_substeps` at the
+start, `finer_steps` between passes) is here too.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 from torch.func import grad
 
 from ..accel import fused_matmul, product_name, step_key, structure_key
+from ..data import Experiment
 from ..models.arm import ArmModel
+from ..models.simulate import filter_substeps
 
-__all__ = ["MatMul", "Propagator", "make_propagator", "matmul_for", "stage_jacobians"]
+__all__ = [
+    "MatMul", "Propagator", "make_propagator", "matmul_for", "stage_jacobians", "finer_steps",
+    "resolve_substeps", "AUTO_SUBSTEPS",
+]  # fmt: skip
 
 
 def stage_jacobians(model: ArmModel, X: Tensor, u: Tensor, theta: Tensor) -> Tensor:
@@ -128,3 +137,52 @@ def _tagged(
     propagate.states = model.state_size  # type: ignore[attr-defined]
     propagate.key = step_key(name, structure_key(model), substeps, product_name(mm))  # type: ignore[attr-defined]
     return propagate
+
+
+def finer_steps(
+    filter_pass: Callable[[int], Any], f: Any, ledger: Any,
+    exps: Sequence[Experiment], make: Callable[[int], Any], auto: bool,
+) -> Callable[[int], Any]:  # fmt: skip
+    """`filter_pass` (of `f`, a `passes.Filtering`, and its `passes.PassLedger` `ledger`), which
+    under ``substeps = "auto"`` first gives `f` the step `make(n)` when the leading running
+    member's θ (the highest likelihood so far; the start before the first pass) needs more RK4
+    sub-steps than it has (`filter_substeps`, at most `AUTO_SUBSTEPS`): the passes steepen the
+    friction they start from, and a step that cannot follow its model moves θ away from stiff
+    friction. The count only grows. A member far off (an inertia 100 times too small) would ask
+    for a step the others do not need, so only the lead counts."""
+    if not auto:
+        return filter_pass
+    dt = max(e.dt for e in exps)
+
+    def run(p: int) -> Any:
+        running = torch.nonzero(ledger.running()).flatten()
+        if running.numel() == 0:
+            return filter_pass(p)
+        lead = int(running[torch.argmax(ledger.best_ll[running])])
+        theta = ledger.theta[lead]
+        need = filter_substeps(ledger.model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)
+        if need > f.substeps:
+            f.step_fn, f.substeps = make(need), need
+        return filter_pass(p)
+
+    return run
+
+
+AUTO_SUBSTEPS = 16
+"""The most RK4 sub-steps ``estimator.substeps = "auto"`` gives the filter: a pass costs about
+that many passes of one sub-step, and each new count builds its generated step once (tanh(3)
+at 16: about 15 s, then cached); a model that needs more is warned about at the run's end."""
+
+
+def resolve_substeps(
+    tuning: Any, model: ArmModel, experiments: Sequence[Experiment],
+    theta: Tensor | None = None,
+) -> Any:  # fmt: skip
+    """`tuning` (an `EKFTuning`) with ``substeps = "auto"`` replaced by the count
+    `filter_substeps` gives `model` at θ (its own by default) for the records' longest sample
+    interval; a tuning with a count as it is."""
+    if tuning.substeps != "auto" or not experiments:
+        return tuning
+    dt = max(e.dt for e in experiments)
+    steps = filter_substeps(model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)
+    return dataclasses.replace(tuning, substeps=steps)

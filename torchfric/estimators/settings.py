@@ -120,7 +120,8 @@ class EKFTuning:
             log-likelihood over all records by less than ``tolerance · k`` nats, k the number
             of parameters (default 0.5: what k parameters fitted to pure noise would gain,
             2Δℓ ~ χ²_k); 0 disables the early stop.
-        substeps: RK4 sub-steps per sample interval in the prediction.
+        substeps: RK4 sub-steps per sample interval in the prediction, or "auto": the fewest that
+            keep RK4 stable on the model's stiffest mode, raised between passes (`finer_steps`).
         theta_bound: divergence box on |θ| (estimation coordinates).
         p0_relative: read `p0_theta` in units of each parameter's own size: the initial
             variance of a linearly stored θ_i is ``p0_theta · θ_i²`` (log-stored entries are
@@ -153,7 +154,7 @@ class EKFTuning:
     measure: str = "both"
     passes: int = 30
     tolerance: float = 0.5
-    substeps: int = 1
+    substeps: int | str = 1
     theta_bound: float = 1e6
     compile: bool = True
     p0_relative: bool = False
@@ -211,11 +212,7 @@ class EKFTuning:
             raise TorchfricError(
                 f"tolerance must be >= 0 (0 disables early stop), got {self.tolerance!r}"
             )
-        if (
-            not isinstance(self.substeps, int)
-            or isinstance(self.substeps, bool)
-            or self.substeps < 1
-        ):
+        if not _is_int(self.substeps) or self.substeps < 1:  # "auto" is resolved before this
             raise TorchfricError(f"substeps must be an integer >= 1, got {self.substeps!r}")
         if not (self.theta_bound > 0):
             raise TorchfricError(f"theta_bound must be > 0, got {self.theta_bound!r}")

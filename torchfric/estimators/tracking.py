@@ -62,6 +62,7 @@ from torch import Tensor
 from ..accel import iter_chunks
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
+from ..models.simulate import filter_substeps
 from .ekf import MEASUREMENTS, EKFState, make_propagator, make_step, update
 from .passes import belief, measurements
 from .settings import EKFTuning
@@ -281,7 +282,9 @@ class Tracker:
         self.Q, self.P0_xx, self.states = Q, P0_xx, s
         self.dt = torch.tensor(dt, dtype=torch.float64)
         self.bound = torch.tensor(tuning.theta_bound, dtype=torch.float64)
-        flow = make_propagator(model, tuning.substeps)
+        steps = tuning.substeps  # "auto": as a run resolves it, at the tracked θ
+        steps = filter_substeps(model, dt, theta=theta) if steps == "auto" else steps
+        flow = make_propagator(model, steps)
         self.step = make_step(flow, compile=compile, chunk=every)
         self.theta0 = theta.clone()
         self.state: EKFState | None = None

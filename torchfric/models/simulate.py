@@ -28,6 +28,7 @@ __all__ = [
     "full_state",
     "steady_bristles",
     "auto_substeps",
+    "filter_substeps",
     "BRISTLE_OMEGA_H",
     "stiffness_speeds",
     "friction_stiffness",
@@ -177,6 +178,25 @@ def auto_substeps(
         return _bristle_substeps(model, dt, theta, max_substeps)
     lam = friction_stiffness(model, theta)
     return int(min(max(1, math.ceil(lam * dt / SOLVERS[method])), max_substeps))
+
+
+def filter_substeps(
+    model: ArmModel, dt: float, *, theta: Tensor | None = None, max_substeps: int = 64
+) -> int:
+    """The RK4 sub-steps ``estimator.substeps = "auto"`` gives the EKF's prediction: the fewest
+    that keep RK4 stable, ``|λ h| <= SOLVERS["rk4"]``, on the model's stiffest mode at θ — the
+    friction's slope for a static model (`friction_stiffness`: `auto_substeps`' own count), the
+    bristle resonance ``ω = sqrt(σ0/M)`` for a dynamic one, whose simulation asks ``ω h <= 0.1``
+    for accuracy over a whole record where the filter's measurement updates correct each step.
+    A step past the limit is not a small error: the filter then cannot follow the model it
+    fits, and the passes move θ away from stiff friction (inertia +14 % on a Stribeck axis
+    whose true law the model held, docs/results.md)."""
+    theta = (model.theta_vector() if theta is None else theta).detach()
+    if model.state_size == 2:
+        rate = friction_stiffness(model, theta)
+    else:
+        rate = bristle_stiffness(model, theta) * BRISTLE_OMEGA_H
+    return int(min(max(1, math.ceil(rate * dt / SOLVERS["rk4"])), max_substeps))
 
 
 # A dynamic model's sub-step keeps ω h <= this, ω = sqrt(σ0/M) the bristle resonance: its

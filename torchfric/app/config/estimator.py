@@ -120,7 +120,12 @@ class EstimatorConfig(TableSection):
             r_scales; its ``seed`` is the run's, `ensemble_spec`); default `RUN_ENSEMBLE`.
         substeps: RK4 steps per sample interval, one value for both estimators: the EKF's
             prediction (`EKFTuning.substeps`) and the output-error simulations
-            (`OETuning.substeps`).
+            (`OETuning.substeps`). "auto": the EKF takes the fewest that keep RK4 stable on
+            the model's stiffest mode (`filter_substeps`: a friction slope λ needs ⌈λ·dt / 2⌉),
+            from the start and raised between passes as the leading member's friction steepens
+            (at most 16); the covariance stage takes the kept θ's; output error re-chooses them
+            every epoch (`auto_substeps`). The default 1 is the paper's; ``torchfric init``
+            writes "auto". A run warns when the kept model needs more than its filter took.
         ensemble: number of starts of the EKF ensemble (`EnsembleSpec.members`); 0 runs a
             single filter, the paper's method. Start 0 is the initial θ itself, the others are
             random within ensemble_spread (×/÷ box around it). Every start runs under every
@@ -287,7 +292,7 @@ def _check_ekf_keys(c: Check, v: SimpleNamespace) -> None:
             f'estimator.measure = "{v.measure}" measures {m} channel(s); give {m}, '
             f"e.g. estimator.r = {example}"
         )
-    c.integer("substeps", ge=1)
+    c.auto_or_integer("substeps", ge=1, example=4)
     c.number("theta_bound", gt=0.0)
     c.boolean("compile")
     c.boolean("p0_relative")

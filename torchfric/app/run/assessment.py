@@ -11,6 +11,7 @@ from ...errors import TorchfricError
 from ...estimators.metrics import SimulationScore, score_simulation
 from ...estimators.settings import data_speeds, speed_quantiles
 from ...models.arm import ArmModel
+from ...models.simulate import filter_substeps
 from ..artifacts import read_checkpoint
 from ..config import Config
 
@@ -222,6 +223,7 @@ def result_warnings(
     out += _active_friction(final, v95, compared)
     out += _uninformed(cfg, final, covariance, start, metrics)
     out += _below_constant(cfg, metrics)
+    out += _coarse_filter(cfg, final, metrics, train or [])
     if (
         cfg.estimator.tolerance > 0  # tolerance 0 asks for exactly `passes` passes
         and metrics.get("converged") is False
@@ -255,6 +257,27 @@ def result_warnings(
             "draw, a missing term); the ± σ include the near members' spread"
         )
     return out
+
+
+def _coarse_filter(
+    cfg: Config, final: ArmModel, metrics: dict[str, Any], train: list[Experiment]
+) -> list[str]:
+    """The warning when the kept model is stiffer than the filter's RK4 step holds:
+    `filter_substeps` at the kept θ above the sub-steps the passes ran (the config's count, or
+    what ``"auto"`` resolved at the start, metrics ``substeps``)."""
+    used = metrics.get("substeps", cfg.estimator.substeps)
+    if cfg.estimator.method != "ekf" or not train or not isinstance(used, int):
+        return []
+    need = filter_substeps(final, max(e.dt for e in train))
+    if need <= used:
+        return []
+    return [
+        f"the kept model is stiffer than the filter's step holds: RK4 needs {need} steps per "
+        f"sample to stay stable on its steepest friction slope, the passes ran {used} "
+        "(estimator.substeps); a filter that cannot follow its model moves θ away from stiff "
+        "friction (on a Stribeck axis: inertia +14 %, docs/results.md): rerun with "
+        f'estimator.substeps = {need}, or "auto" with model.init = this run\'s checkpoint'
+    ]
 
 
 def needed_terms(experiments: list[Experiment], c_m: float, rotary: bool) -> dict[str, tuple]:

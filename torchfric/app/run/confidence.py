@@ -47,6 +47,7 @@ from ...errors import TorchfricError
 from ...estimators.covariance import noise_model, pem_covariance, pem_refine, step_ratio
 from ...estimators.passes import DIVERGED
 from ...estimators.prefit import stick_band
+from ...estimators.propagation import resolve_substeps
 from ...estimators.sandwich import Identifiability, PEMCovariance, viscous_share
 from ...estimators.settings import data_speeds
 from ...estimators.uncertainty import physical_std
@@ -86,7 +87,7 @@ def attach_covariance(
     near members (``extra["near_members"]``, `near_members`; taken out of `extra`) may widen
     the σ (`member_spread`)."""
     near = extra.pop("near_members", None) or []
-    run_tuning = cfg.estimator.ekf_tuning().resolved(train)
+    run_tuning = _kept_substeps(cfg, final, train, extra).resolved(train)
     tuning = _position_only(run_tuning)
     q_scale, r_scale = extra.get("tuning_scales", (1.0, 1.0))
     theta = torch.as_tensor(state["theta"], dtype=torch.float64)
@@ -223,6 +224,30 @@ def covariance_at(
     `torchfric.app.commands.bands`)."""
     found = prediction_error(model, records, _position_only(tuning), theta)
     return offset_covariance(found.at_kept.cov, found.offset_from(model, theta))
+
+
+def start_substeps(
+    cfg: Config, model: ArmModel, train: list[Experiment], say: Callable[[str], None]
+) -> dict[str, Any]:
+    """Under ``estimator.substeps = "auto"``, the RK4 sub-steps the filter starts with for the
+    starting `model` (the passes raise them as θ stiffens), said; metrics ``substeps``."""
+    if cfg.estimator.substeps != "auto":
+        return {}
+    n = resolve_substeps(cfg.estimator.ekf_tuning(), model, train).substeps
+    say(f'  estimator.substeps = "auto": the filter starts with {n} RK4 step(s) per sample')
+    return {"substeps": n}
+
+
+def _kept_substeps(cfg: Config, final: ArmModel, train: list[Experiment], extra: dict) -> Any:
+    """The run's EKF tuning for the covariance stage: under ``substeps = "auto"`` the RK4
+    sub-steps the kept θ needs, at least those the filter started with (metrics ``substeps``
+    becomes that count: what `torchfric track` then filters with)."""
+    tuning = cfg.estimator.ekf_tuning()
+    if tuning.substeps != "auto":
+        return tuning
+    kept = resolve_substeps(tuning, final, train).substeps
+    extra["substeps"] = max(kept, extra.get("substeps", 1))
+    return dataclasses.replace(tuning, substeps=extra["substeps"])
 
 
 def _stuck_note(cov: dict[str, Any]) -> str:

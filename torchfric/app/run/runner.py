@@ -40,7 +40,7 @@ from ..artifacts import (
 from ..config import Config
 from .assessment import evaluate_model, provenance, result_warnings, scoring_engine
 from .autosize import choose_dynamic, choose_size_and_start, with_dynamic
-from .confidence import attach_covariance, attach_oe_covariance, near_members
+from .confidence import attach_covariance, attach_oe_covariance, near_members, start_substeps
 from .inputs import check_resources, config_model, device_named, initial_model, load_data
 from .monitors import Printer, ValidationScores
 from .outcome import kept_pass, kept_payload, member_held_out, parameter_table, selection_records
@@ -101,10 +101,11 @@ def _run_ekf(
         return _run_ensemble(cfg, model, train_exps, obs, est, run)
     start = est.start if isinstance(est, EKFResume) else None
     _on_cpu(obs, "the single filter")
+    more = start_substeps(cfg, model, train_exps, obs.say)
     result = identify_ekf(
         model, train_exps, cfg.estimator.ekf_tuning(), callback=obs.callbacks, start=start
     )
-    return _kept(cfg, result, obs, sum(r.seconds for r in result.history), {})
+    return _kept(cfg, result, obs, sum(r.seconds for r in result.history), more)
 
 
 def _kept(
@@ -157,6 +158,7 @@ def _run_ensemble(
         f"  ensemble of {spec.size} filters ({starts} × Q ×{_scales(spec.q_scales)} × "
         f"R ×{_scales(spec.r_scales)}), one batch; estimator.ensemble = 0 runs one filter"
     )
+    substeps = start_substeps(cfg, model, train_exps, obs.say)
     ens = identify_ekf_ensemble(
         model,
         train_exps,
@@ -167,8 +169,8 @@ def _run_ensemble(
         start=est.state if isinstance(est, EnsembleResume) else None,
         device=obs.device,
     )
-    # under select = "identification", every member's validation FIT: reported, not chosen by
-    held_out = member_held_out(model, ens, obs.reported, cfg)
+    # every member's validation FIT under select = "identification"; auto's first sub-steps
+    held_out = {**member_held_out(model, ens, obs.reported, cfg), **substeps}
     summary = ens.summary()
     (run / "ensemble.json").write_text(
         json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
