@@ -213,8 +213,9 @@ class _Plan:
             found = self.terms.get(key, (None, ""))[0]
             head += _block(key, example if found is None else found, why, active=found is not None)
         head += ["", "[estimator]"]
-        for key in ("method", "select", "passes", "tolerance", "ensemble"):
-            head += _block(key, getattr(est, key), _HELP.get(key, ""))
+        for key in ("method", "select", "passes", "tolerance", "substeps", "ensemble"):
+            value = "auto" if key == "substeps" else getattr(est, key)
+            head += _block(key, value, _HELP.get(key, ""))
         return "\n".join(head) + "\n"
 
 
@@ -288,6 +289,9 @@ _HELP = {
     "kept the better models everywhere: docs/results.md).",
     "passes": "EKF passes over the data, at most; they stop, converged, once a pass raises the "
     "innovation log-likelihood by less than `tolerance` nats per parameter (0: never).",
+    "substeps": 'RK4 steps per sample in the filter: "auto", the fewest that keep it stable on '
+    "the model's steepest friction (raised as the passes steepen it, at most 16), or a number "
+    "(1: the paper's); a filter that cannot follow a stiff model biases it (docs/results.md).",
     "ensemble": "1: the start under 3 Q × 3 R tunings (9 filters), the best kept; 0: one "
     "filter, the paper's method.",
 }
