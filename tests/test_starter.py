@@ -125,6 +125,15 @@ def test_init_then_check_as_a_user_would(user, record, capsys) -> None:  # type:
     assert not (user / "runs" / "rec-2").exists()
 
 
+def test_init_gives_the_filter_its_sub_steps_from_the_model(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
+    # the paper's one RK4 step a sample is the library's default; a user's config asks for
+    # the count the model's friction needs (estimator.substeps = "auto", tests/test_substeps.py)
+    _csv(user / "rec.csv", record, ("time", "current", "position"))
+    assert main(["init", "rec.csv", "--c-m", "16"]) == 0
+    assert Config.load(user / "rec.toml").estimator.substeps == "auto"
+    assert 'substeps = "auto"' in (user / "rec.toml").read_text()
+
+
 def test_config_in_another_folder_names_the_data_relative_to_itself(user, record, capsys) -> None:  # type: ignore[no-untyped-def]
     _csv(user / "rec.csv", record)
     (user / "configs").mkdir()
