@@ -199,6 +199,10 @@ def _estimator_lines(cfg: Config, samples: int) -> list[str]:
     else:
         filters, how = 1, "one filter"
     steps = samples * est.passes * filters
+    if est.substeps == "auto":
+        how += '; RK4 sub-steps from the model\'s friction (estimator.substeps = "auto")'
+    elif est.substeps > 1:
+        how += f"; {est.substeps} RK4 sub-steps a sample"
     return [
         _line("estimator", f"ekf: up to {est.passes} passes ({stop}), {how}"),
         _kept_line(cfg),
