@@ -338,7 +338,7 @@ def identify_ekf_ensemble(
     """
     t_start = time.perf_counter()
     k, auto = model.num_parameters, tuning is not None and tuning.substeps == "auto"
-    exps, tuning = prepared(experiments, tuning or EKFTuning(), model, "identify_ekf_ensemble")
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), k, "identify_ekf_ensemble", model)
     thetas, q_scale, r_scale = _member_starts(model, spec, members, start)
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(k, model.state_size)

@@ -63,7 +63,8 @@ def identify_ekf(
             result after the last completed pass (or the initial guess).
     """
     auto = tuning is not None and tuning.substeps == "auto"
-    exps, tuning = prepared(experiments, tuning or EKFTuning(), model, "identify_ekf")
+    k = model.num_parameters
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), k, "identify_ekf", model)
     callback = callback or Callback()
     Q, P0_xx, H, R = tuning.matrices(model.num_parameters, model.state_size)
     data = measured_data(exps, tuning.measure)

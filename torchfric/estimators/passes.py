@@ -356,14 +356,15 @@ def experiment_list(
 
 
 def prepared(
-    experiments: Experiment | Sequence[Experiment], tuning: EKFTuning, model: ArmModel, who: str
-) -> tuple[list[Experiment], EKFTuning]:
+    experiments: Experiment | Sequence[Experiment], tuning: EKFTuning, k: int, who: str,
+    model: ArmModel | None = None,
+) -> tuple[list[Experiment], EKFTuning]:  # fmt: skip
     """`experiment_list`, and `tuning` resolved against those experiments (`EKFTuning.resolved`:
     relative variances at the data's velocity scale; ``substeps = "auto"`` for `model` at its
     own θ, `resolve_substeps`)."""
     exps = [experiments] if isinstance(experiments, Experiment) else list(experiments)
-    tuning = resolve_substeps(tuning, model, exps)
-    exps = experiment_list(exps, tuning, model.num_parameters, who)
+    tuning = tuning if model is None else resolve_substeps(tuning, model, exps)
+    exps = experiment_list(exps, tuning, k, who)
     return exps, tuning.resolved(exps)
 
 

@@ -189,7 +189,8 @@ def compare_sizes(
         raise TorchfricError("compare_sizes needs at least one size")
     sizes = sorted(starts)
     largest = starts[sizes[-1]]
-    exps, tuning = prepared(experiments, tuning or EKFTuning(), largest, "compare_sizes")
+    k = largest.num_parameters
+    exps, tuning = prepared(experiments, tuning or EKFTuning(), k, "compare_sizes", largest)
     callback = callback or Callback()
     batched = len(sizes) > 1 and nests(starts)
     groups = [(largest, sizes)] if batched else [(starts[s], [s]) for s in sizes]
@@ -487,7 +488,7 @@ def _identify_and_predict(
             continue
         score, theta = r.scores[0], r.thetas[1]
         scores[key], thetas[key] = score, theta
-        resolved = prepared(heads, tuning, start, "compare_dynamics")[1]
+        resolved = prepared(heads, tuning, start.num_parameters, "compare_dynamics", start)[1]
         kw = {"q_scale": score.q_scale, "r_scale": score.r_scale}
         try:
             errs = [window_errors(start, theta, e, resolved, c, w, **kw) for e, c, w in picks]
