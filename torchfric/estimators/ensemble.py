@@ -16,9 +16,8 @@ others carry on. Health flags are folded into masks on the device, read once per
 
 After the passes, the member with the best open-loop FIT is kept — the mean of the q and q̇ FIT of
 an open-loop simulation (all members simulated as one batch), averaged over the validation
-experiments and, with equal weight, over the training experiments (the training experiments alone
-when no validation data are given) — and the spread of all members' results is reported: a cheap
-measure of how trustworthy the identification is (`selection`).
+experiments and, with equal weight, over the training experiments (those alone without
+validation data) — and the spread of all members' results is reported (`selection`).
 
 Why this size: the batch's one pass loop, its stretch masks and its selection call must change
 together; the pass ledger and the selection are already apart (`passes`, `selection`)."""
@@ -365,9 +364,10 @@ def identify_ekf_ensemble(
 
     one_pass = finer_steps(lambda p: _filter_members(p, ledger, f), f, ledger, exps, make, auto)
     run_passes(ledger, tuning.passes, one_pass, on_pass_end)
-    engine = "compiled" if tuning.compile else "odeint"
-    choice = (validation, max_substeps, engine)
-    return _finish(model, exps, ledger, q_scale, r_scale, choice, t_start)
+    choice = (validation, max_substeps, "compiled" if tuning.compile else "odeint")
+    ens = _finish(model, exps, ledger, q_scale, r_scale, choice, t_start)
+    ens.result.substeps = f.substeps  # the kept member's, as every member's: one shared step
+    return ens
 
 
 def _member_starts(

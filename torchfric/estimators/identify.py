@@ -9,6 +9,7 @@ those of `torchfric.estimators.passes` (shared with the ensemble), for one membe
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -87,7 +88,7 @@ def identify_ekf(
 
     one_pass = finer_steps(lambda p: _filter_pass(p, ledger, f), f, ledger, exps, make, auto)
     run_passes(ledger, tuning.passes, one_pass, on_pass_end)
-    return ledger.result(0)
+    return dataclasses.replace(ledger.result(0), substeps=f.substeps)
 
 
 def _filter_pass(p: int, ledger: PassLedger, f: Filtering) -> PassSums:

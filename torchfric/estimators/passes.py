@@ -107,6 +107,7 @@ class EKFResult:
     P_theta: Tensor  # (k, k)
     history: list[PassRecord] = field(default_factory=list)
     converged: bool = False
+    substeps: int | None = None  # RK4 sub-steps of the last pass's step (None: not recorded)
 
     @property
     def passes(self) -> int:

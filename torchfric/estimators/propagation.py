@@ -8,6 +8,7 @@ start, `finer_steps` between passes) is here too.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -22,7 +23,7 @@ from ..models.simulate import filter_substeps
 
 __all__ = [
     "MatMul", "Propagator", "make_propagator", "matmul_for", "stage_jacobians", "finer_steps",
-    "resolve_substeps", "AUTO_SUBSTEPS",
+    "resolve_substeps", "auto_count", "AUTO_SUBSTEPS",
 ]  # fmt: skip
 
 
@@ -148,8 +149,10 @@ def finer_steps(
     member's θ (the highest likelihood so far; the start before the first pass) needs more RK4
     sub-steps than it has (`filter_substeps`, at most `AUTO_SUBSTEPS`): the passes steepen the
     friction they start from, and a step that cannot follow its model moves θ away from stiff
-    friction. The count only grows. A member far off (an inertia 100 times too small) would ask
-    for a step the others do not need, so only the lead counts."""
+    friction. The count only grows, and after a raise the running members' next pass is not
+    judged against their passes at fewer sub-steps (another discretisation's likelihood: no
+    rollback, no convergence by it). A member far off (an inertia 100 times too small) would
+    ask for a step the others do not need, so only the lead counts."""
     if not auto:
         return filter_pass
     dt = max(e.dt for e in exps)
@@ -160,9 +163,10 @@ def finer_steps(
             return filter_pass(p)
         lead = int(running[torch.argmax(ledger.best_ll[running])])
         theta = ledger.theta[lead]
-        need = filter_substeps(ledger.model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)
-        if need > f.substeps:
+        need = auto_count(ledger.model, dt, theta)
+        if need > f.substeps:  # ℓ of another discretisation: the next pass is not judged by it
             f.step_fn, f.substeps = make(need), need
+            ledger.best_ll[running] = -math.inf
         return filter_pass(p)
 
     return run
@@ -183,6 +187,11 @@ def resolve_substeps(
     interval; a tuning with a count as it is."""
     if tuning.substeps != "auto" or not experiments:
         return tuning
-    dt = max(e.dt for e in experiments)
-    steps = filter_substeps(model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)
+    steps = auto_count(model, max(e.dt for e in experiments), theta)
     return dataclasses.replace(tuning, substeps=steps)
+
+
+def auto_count(model: ArmModel, dt: float, theta: Tensor | None = None) -> int:
+    """The count ``"auto"`` gives the filter of `model` at θ: `filter_substeps`, at most
+    `AUTO_SUBSTEPS`."""
+    return filter_substeps(model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)

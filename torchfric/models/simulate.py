@@ -183,19 +183,17 @@ def auto_substeps(
 def filter_substeps(
     model: ArmModel, dt: float, *, theta: Tensor | None = None, max_substeps: int = 64
 ) -> int:
-    """The RK4 sub-steps ``estimator.substeps = "auto"`` gives the EKF's prediction: the fewest
-    that keep RK4 stable, ``|λ h| <= SOLVERS["rk4"]``, on the model's stiffest mode at θ — the
-    friction's slope for a static model (`friction_stiffness`: `auto_substeps`' own count), the
-    bristle resonance ``ω = sqrt(σ0/M)`` for a dynamic one, whose simulation asks ``ω h <= 0.1``
-    for accuracy over a whole record where the filter's measurement updates correct each step.
-    A step past the limit is not a small error: the filter then cannot follow the model it
-    fits, and the passes move θ away from stiff friction (inertia +14 % on a Stribeck axis
-    whose true law the model held, docs/results.md)."""
+    """The RK4 sub-steps ``estimator.substeps = "auto"`` gives the EKF's prediction of a static
+    model: the fewest that keep RK4 stable, ``|λ h| <= SOLVERS["rk4"]``, on its steepest
+    friction slope at θ (`friction_stiffness`: `auto_substeps`' own count). A step past the
+    limit is not a small error: the filter then cannot follow the model it fits, and its passes
+    can move θ away from stiff friction (on one Stribeck axis whose true law the model held:
+    inertia +14 %, docs/results.md). A dynamic model's step (`ArmModel.substep`, semi-implicit
+    in the bristles) is stable at any stiffness: 1."""
+    if model.state_size != 2:
+        return 1
     theta = (model.theta_vector() if theta is None else theta).detach()
-    if model.state_size == 2:
-        rate = friction_stiffness(model, theta)
-    else:
-        rate = bristle_stiffness(model, theta) * BRISTLE_OMEGA_H
+    rate = friction_stiffness(model, theta)
     return int(min(max(1, math.ceil(rate * dt / SOLVERS["rk4"])), max_substeps))
 
 

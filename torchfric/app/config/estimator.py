@@ -123,9 +123,10 @@ class EstimatorConfig(TableSection):
             (`OETuning.substeps`). "auto": the EKF takes the fewest that keep RK4 stable on
             the model's stiffest mode (`filter_substeps`: a friction slope λ needs ⌈λ·dt / 2⌉),
             from the start and raised between passes as the leading member's friction steepens
-            (at most 16); the covariance stage takes the kept θ's; output error re-chooses them
-            every epoch (`auto_substeps`). The default 1 is the paper's; ``torchfric init``
-            writes "auto". A run warns when the kept model needs more than its filter took.
+            (at most 16; 1 for LuGre, whose step is stable at any stiffness); the covariance
+            stage takes the kept θ's; output error re-chooses them every epoch
+            (`auto_substeps`). The default 1 is the paper's; ``torchfric init`` writes "auto".
+            A run warns when the kept model needs more than its filter's last pass took.
         ensemble: number of starts of the EKF ensemble (`EnsembleSpec.members`); 0 runs a
             single filter, the paper's method. Start 0 is the initial θ itself, the others are
             random within ensemble_spread (×/÷ box around it). Every start runs under every

@@ -9,6 +9,7 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.metrics import SimulationScore, score_simulation
+from ...estimators.propagation import AUTO_SUBSTEPS
 from ...estimators.settings import data_speeds, speed_quantiles
 from ...models.arm import ArmModel
 from ...models.simulate import filter_substeps
@@ -264,7 +265,7 @@ def _coarse_filter(
 ) -> list[str]:
     """The warning when the kept model is stiffer than the filter's RK4 step holds:
     `filter_substeps` at the kept θ above the sub-steps the passes ran (the config's count, or
-    what ``"auto"`` resolved at the start, metrics ``substeps``)."""
+    under ``"auto"`` the last pass's, metrics ``substeps``)."""
     used = metrics.get("substeps", cfg.estimator.substeps)
     if cfg.estimator.method != "ekf" or not train or not isinstance(used, int):
         return []
@@ -274,9 +275,10 @@ def _coarse_filter(
     return [
         f"the kept model is stiffer than the filter's step holds: RK4 needs {need} steps per "
         f"sample to stay stable on its steepest friction slope, the passes ran {used} "
-        "(estimator.substeps); a filter that cannot follow its model moves θ away from stiff "
-        "friction (on a Stribeck axis: inertia +14 %, docs/results.md): rerun with "
-        f'estimator.substeps = {need}, or "auto" with model.init = this run\'s checkpoint'
+        "(estimator.substeps); a filter that cannot follow its model can move θ away from "
+        "stiff friction (on one Stribeck axis: inertia +14 %, docs/results.md): rerun with "
+        f"estimator.substeps = {need}"
+        + (', or "auto" with model.init = this run\'s checkpoint' if need <= AUTO_SUBSTEPS else "")
     ]
 
 

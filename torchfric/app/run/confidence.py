@@ -240,14 +240,13 @@ def start_substeps(
 
 def _kept_substeps(cfg: Config, final: ArmModel, train: list[Experiment], extra: dict) -> Any:
     """The run's EKF tuning for the covariance stage: under ``substeps = "auto"`` the RK4
-    sub-steps the kept θ needs, at least those the filter started with (metrics ``substeps``
-    becomes that count: what `torchfric track` then filters with)."""
+    sub-steps the kept θ needs, at least those of the filter's last pass (metrics ``substeps``);
+    the checkpoint keeps that count for `torchfric track`."""
     tuning = cfg.estimator.ekf_tuning()
     if tuning.substeps != "auto":
         return tuning
     kept = resolve_substeps(tuning, final, train).substeps
-    extra["substeps"] = max(kept, extra.get("substeps", 1))
-    return dataclasses.replace(tuning, substeps=extra["substeps"])
+    return dataclasses.replace(tuning, substeps=max(kept, extra.get("substeps", 1)))
 
 
 def _stuck_note(cov: dict[str, Any]) -> str:

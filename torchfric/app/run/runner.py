@@ -120,7 +120,8 @@ def _kept(
         held_out=bool(obs.reported) and "ensemble" not in more,
     )  # fmt: skip
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
-    extra.update(more)
+    # "auto" sub-steps: the count the filter's last pass ran (the start's was said)
+    extra.update(more, **({"substeps": result.substeps} if "substeps" in more else {}))
     state, best = kept_payload(kept, extra), extra.get("best_pass")
     scores, history = obs.scores.scores_at(best) or {}, state.get("history", ())
     obs.callbacks.on_estimate(
@@ -132,10 +133,8 @@ def _kept(
 def _on_cpu(obs: _Watch, what: str) -> None:
     """The note that `what` runs on the CPU although ``--device`` names a GPU."""
     if obs.device is not None:
-        obs.say(
-            f"  note: {what} runs on the CPU; --device {obs.device} serves ensembles "
-            '(estimator.ensemble > 0) and model.size = "auto"'
-        )
+        obs.say(f"  note: {what} runs on the CPU; --device {obs.device} serves ensembles "
+                '(estimator.ensemble > 0) and model.size = "auto"')  # fmt: skip
 
 
 def _scales(scales: tuple[float, ...]) -> str:
