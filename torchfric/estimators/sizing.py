@@ -282,9 +282,9 @@ def _filtering(
     Qk = Q * members.q_scale[:, None, None]
     Rk = R * members.r_scale[:, None, None]
     step_fn = make_masked_step(model, tuning.substeps, compile=tuning.compile, device=device)
-    data = measured_data(exps, tuning.measure)
-    total = sum(e.n for e in exps)
-    return Filtering(data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, every, total)
+    data, total = measured_data(exps, tuning.measure), sum(e.n for e in exps)
+    return Filtering(data, Qk, P0_xx, H, Rk, step_fn, tuning.theta_bound, callback, every, total,
+                     tuning.substeps)  # fmt: skip
 
 
 def _train(model: ArmModel, tuning: EKFTuning, members: _Members, f: Filtering) -> PassLedger:
