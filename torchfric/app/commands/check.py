@@ -263,7 +263,8 @@ def check_run(cfg: Config, warnings: list[str] | None = None, *, timed: bool = F
     estimate = estimate_run(one, train, start, timed=timed)
     if cfg.model.dynamic == "auto":  # both classes compared first, then the kept one
         estimate = auto_estimate(cfg, train, estimate, timed=timed)
-    lines += _estimate_lines(estimate, t_start, init_kind, cfg.estimator.passes)
+    auto = cfg.estimator.method == "ekf" and cfg.estimator.substeps == "auto"
+    lines += _estimate_lines(estimate, t_start, init_kind, cfg.estimator.passes, auto)
     lines += [_line("warning", w) for w in found]
     if warnings is not None:
         warnings.extend(found)
@@ -274,7 +275,9 @@ def _minutes(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
-def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str, passes: int) -> list[str]:
+def _estimate_lines(
+    est: RunEstimate, start_s: float, init_kind: str, passes: int, auto_steps: bool = False
+) -> list[str]:
     """The run's time (the starting point as measured here, the filter at a rate timed here)
     and its peak memory (`torchfric.resources.run_peak_bytes`)."""
     start = f"{'pre-fit' if init_kind == 'prefit' else 'start'} {_minutes(start_s)}"
@@ -293,6 +296,9 @@ def _estimate_lines(est: RunEstimate, start_s: float, init_kind: str, passes: in
             f"({ends[1]}): the {start} as here, then {first}passes at {rate} filter steps/s "
             f"({'timed here' if est.timed else 'nominal'}) and the covariance"
         )
+        if auto_steps:  # estimator.substeps = "auto"
+            time_text += (" (at the start's RK4 sub-steps; each pass costs as many times more "
+                          "as the passes raise them, up to 16, on friction that steepens)")  # fmt: skip
     free = "" if est.available is None else f"; {format_bytes(est.available)} available"
     return [
         _line("time", time_text),

@@ -87,7 +87,7 @@ def attach_covariance(
     near members (``extra["near_members"]``, `near_members`; taken out of `extra`) may widen
     the σ (`member_spread`)."""
     near = extra.pop("near_members", None) or []
-    run_tuning = _kept_substeps(cfg, final, train, extra).resolved(train)
+    run_tuning = _kept_substeps(cfg, final, train, extra, say).resolved(train)
     tuning = _position_only(run_tuning)
     q_scale, r_scale = extra.get("tuning_scales", (1.0, 1.0))
     theta = torch.as_tensor(state["theta"], dtype=torch.float64)
@@ -229,8 +229,7 @@ def covariance_at(
 def start_substeps(
     cfg: Config, model: ArmModel, train: list[Experiment], say: Callable[[str], None]
 ) -> dict[str, Any]:
-    """Under ``estimator.substeps = "auto"``, the RK4 sub-steps the filter starts with for the
-    starting `model` (the passes raise them as θ stiffens), said; metrics ``substeps``."""
+    """Under ``substeps = "auto"``, the filter's first RK4 sub-steps for `model`, said."""
     if cfg.estimator.substeps != "auto":
         return {}
     n = resolve_substeps(cfg.estimator.ekf_tuning(), model, train).substeps
@@ -238,15 +237,17 @@ def start_substeps(
     return {"substeps": n}
 
 
-def _kept_substeps(cfg: Config, final: ArmModel, train: list[Experiment], extra: dict) -> Any:
+def _kept_substeps(cfg: Config, final: ArmModel, train: list, extra: dict, say: Callable) -> Any:
     """The run's EKF tuning for the covariance stage: under ``substeps = "auto"`` the RK4
-    sub-steps the kept θ needs, at least those of the filter's last pass (metrics ``substeps``);
-    the checkpoint keeps that count for `torchfric track`."""
+    sub-steps the kept θ needs, at least those of the filter's last pass (metrics ``substeps``),
+    said; the checkpoint keeps that count for `torchfric track`."""
     tuning = cfg.estimator.ekf_tuning()
     if tuning.substeps != "auto":
         return tuning
-    kept = resolve_substeps(tuning, final, train).substeps
-    return dataclasses.replace(tuning, substeps=max(kept, extra.get("substeps", 1)))
+    ran = extra.get("substeps", 1)
+    n = max(resolve_substeps(tuning, final, train).substeps, ran)
+    say(f"  the passes ended at {ran} RK4 step(s) per sample; the covariance stage takes {n}")
+    return dataclasses.replace(tuning, substeps=n)
 
 
 def _stuck_note(cov: dict[str, Any]) -> str:
