@@ -168,8 +168,7 @@ def _run_ensemble(
         start=est.state if isinstance(est, EnsembleResume) else None,
         device=obs.device,
     )
-    # every member's validation FIT under select = "identification"; auto's first sub-steps
-    held_out = {**member_held_out(model, ens, obs.reported, cfg), **substeps}
+    held_out = {**member_held_out(model, ens, obs.reported, cfg), **substeps}  # members' FITs
     summary = ens.summary()
     (run / "ensemble.json").write_text(
         json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
@@ -177,7 +176,8 @@ def _run_ensemble(
     best = ens.members[ens.best]
     obs.say(
         f"  kept member {best.index} (Q ×{best.q_scale:g}, R ×{best.r_scale:g}, {best.status}) by "
-        f"{ens.selected_by.replace('_', ' ')} {best.score:.6g}; "
+        f"{ens.selected_by.replace('_', ' ')} {best.score:.6g}"
+        f"{' nats' if ens.selected_by == 'loglik' else ' % (mean FIT of q and q̇)'}; "
         f"{summary['status'].get('diverged', 0)} of {len(ens.members)} members diverged; "
         f"{summary['filter_steps_per_second']:,.0f} filter-steps/s"
     )
