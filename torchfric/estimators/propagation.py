@@ -23,7 +23,7 @@ from ..models.simulate import filter_substeps
 
 __all__ = [
     "MatMul", "Propagator", "make_propagator", "matmul_for", "stage_jacobians", "finer_steps",
-    "resolve_substeps", "auto_count", "AUTO_SUBSTEPS",
+    "resolve_substeps",
 ]  # fmt: skip
 
 
@@ -147,7 +147,7 @@ def finer_steps(
     """`filter_pass` (of `f`, a `passes.Filtering`, and its `passes.PassLedger` `ledger`), which
     under ``substeps = "auto"`` first gives `f` the step `make(n)` when the leading running
     member's θ (the highest likelihood so far; the start before the first pass) needs more RK4
-    sub-steps than it has (`filter_substeps`, at most `AUTO_SUBSTEPS`): the passes steepen the
+    sub-steps than it has (`filter_substeps`, at most its `AUTO_SUBSTEPS`): the passes steepen the
     friction they start from, and a step that cannot follow its model moves θ away from stiff
     friction. The count only grows, and after a raise the running members' next pass is not
     judged against their passes at fewer sub-steps (another discretisation's likelihood: no
@@ -163,7 +163,7 @@ def finer_steps(
             return filter_pass(p)
         lead = int(running[torch.argmax(ledger.best_ll[running])])
         theta = ledger.theta[lead]
-        need = auto_count(ledger.model, dt, theta)
+        need = filter_substeps(ledger.model, dt, theta=theta)
         if need > f.substeps:  # ℓ of another discretisation: the next pass is not judged by it
             f.step_fn, f.substeps = make(need), need
             ledger.best_ll[running] = -math.inf
@@ -172,26 +172,11 @@ def finer_steps(
     return run
 
 
-AUTO_SUBSTEPS = 16
-"""The most RK4 sub-steps ``estimator.substeps = "auto"`` gives the filter: a pass costs about
-that many passes of one sub-step, and each new count builds its generated step once (tanh(3)
-at 16: about 15 s, then cached); a model that needs more is warned about at the run's end."""
-
-
-def resolve_substeps(
-    tuning: Any, model: ArmModel, experiments: Sequence[Experiment],
-    theta: Tensor | None = None,
-) -> Any:  # fmt: skip
+def resolve_substeps(tuning: Any, model: ArmModel, experiments: Sequence[Experiment]) -> Any:
     """`tuning` (an `EKFTuning`) with ``substeps = "auto"`` replaced by the count
-    `filter_substeps` gives `model` at θ (its own by default) for the records' longest sample
-    interval; a tuning with a count as it is."""
+    `filter_substeps` gives `model` at its own θ for the records' longest sample interval; a
+    tuning with a count as it is."""
     if tuning.substeps != "auto" or not experiments:
         return tuning
-    steps = auto_count(model, max(e.dt for e in experiments), theta)
+    steps = filter_substeps(model, max(e.dt for e in experiments))
     return dataclasses.replace(tuning, substeps=steps)
-
-
-def auto_count(model: ArmModel, dt: float, theta: Tensor | None = None) -> int:
-    """The count ``"auto"`` gives the filter of `model` at θ: `filter_substeps`, at most
-    `AUTO_SUBSTEPS`."""
-    return filter_substeps(model, dt, theta=theta, max_substeps=AUTO_SUBSTEPS)

@@ -62,9 +62,9 @@ from torch import Tensor
 from ..accel import iter_chunks
 from ..errors import TorchfricError
 from ..models.arm import ArmModel
+from ..models.simulate import filter_substeps
 from .ekf import MEASUREMENTS, EKFState, make_propagator, make_step, update
 from .passes import belief, measurements
-from .propagation import auto_count
 from .settings import EKFTuning
 
 __all__ = [
@@ -283,7 +283,7 @@ class Tracker:
         self.dt = torch.tensor(dt, dtype=torch.float64)
         self.bound = torch.tensor(tuning.theta_bound, dtype=torch.float64)
         steps = tuning.substeps  # "auto": as a run resolves it, at the tracked θ
-        steps = auto_count(model, dt, theta) if steps == "auto" else steps
+        steps = filter_substeps(model, dt, theta=theta) if steps == "auto" else steps
         flow = make_propagator(model, steps)
         self.step = make_step(flow, compile=compile, chunk=every)
         self.theta0 = theta.clone()

@@ -29,6 +29,7 @@ __all__ = [
     "steady_bristles",
     "auto_substeps",
     "filter_substeps",
+    "AUTO_SUBSTEPS",
     "BRISTLE_OMEGA_H",
     "stiffness_speeds",
     "friction_stiffness",
@@ -180,8 +181,15 @@ def auto_substeps(
     return int(min(max(1, math.ceil(lam * dt / SOLVERS[method])), max_substeps))
 
 
+AUTO_SUBSTEPS = 16
+"""The most RK4 sub-steps ``estimator.substeps = "auto"`` gives the filter (`filter_substeps`'
+default cap): a pass costs about that many passes of one sub-step, and each new count builds its
+generated step once (tanh(3) at 16: about 15 s, then cached); a run whose model needs more is
+warned about at its end."""
+
+
 def filter_substeps(
-    model: ArmModel, dt: float, *, theta: Tensor | None = None, max_substeps: int = 64
+    model: ArmModel, dt: float, *, theta: Tensor | None = None, max_substeps: int = AUTO_SUBSTEPS
 ) -> int:
     """The RK4 sub-steps ``estimator.substeps = "auto"`` gives the EKF's prediction of a static
     model: the fewest that keep RK4 stable, ``|λ h| <= SOLVERS["rk4"]``, on its steepest
@@ -192,9 +200,7 @@ def filter_substeps(
     in the bristles) is stable at any stiffness: 1."""
     if model.state_size != 2:
         return 1
-    theta = (model.theta_vector() if theta is None else theta).detach()
-    rate = friction_stiffness(model, theta)
-    return int(min(max(1, math.ceil(rate * dt / SOLVERS["rk4"])), max_substeps))
+    return auto_substeps(model, dt, "rk4", theta=theta, max_substeps=max_substeps)
 
 
 # A dynamic model's sub-step keeps ω h <= this, ω = sqrt(σ0/M) the bristle resonance: its

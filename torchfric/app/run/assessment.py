@@ -9,10 +9,9 @@ import torch
 from ...data import Experiment
 from ...errors import TorchfricError
 from ...estimators.metrics import SimulationScore, score_simulation
-from ...estimators.propagation import AUTO_SUBSTEPS
 from ...estimators.settings import data_speeds, speed_quantiles
 from ...models.arm import ArmModel
-from ...models.simulate import filter_substeps
+from ...models.simulate import AUTO_SUBSTEPS, filter_substeps
 from ..artifacts import read_checkpoint
 from ..config import Config
 
@@ -269,7 +268,7 @@ def _coarse_filter(
     used = metrics.get("substeps", cfg.estimator.substeps)
     if cfg.estimator.method != "ekf" or not train or not isinstance(used, int):
         return []
-    need = filter_substeps(final, max(e.dt for e in train))
+    need = filter_substeps(final, max(e.dt for e in train), max_substeps=64)  # past auto's cap
     if need <= used:
         return []
     return [

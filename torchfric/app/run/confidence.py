@@ -228,13 +228,11 @@ def covariance_at(
 
 def start_substeps(
     cfg: Config, model: ArmModel, train: list[Experiment], say: Callable[[str], None]
-) -> dict[str, Any]:
-    """Under ``substeps = "auto"``, the filter's first RK4 sub-steps for `model`, said."""
-    if cfg.estimator.substeps != "auto":
-        return {}
-    n = resolve_substeps(cfg.estimator.ekf_tuning(), model, train).substeps
-    say(f'  estimator.substeps = "auto": the filter starts with {n} RK4 step(s) per sample')
-    return {"substeps": n}
+) -> None:
+    """Under ``substeps = "auto"``, says the filter's first RK4 sub-steps for `model`."""
+    if cfg.estimator.substeps == "auto":
+        n = resolve_substeps(cfg.estimator.ekf_tuning(), model, train).substeps
+        say(f'  estimator.substeps = "auto": the filter starts with {n} RK4 step(s) per sample')
 
 
 def _kept_substeps(cfg: Config, final: ArmModel, train: list, extra: dict, say: Callable) -> Any:

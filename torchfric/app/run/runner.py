@@ -101,27 +101,27 @@ def _run_ekf(
         return _run_ensemble(cfg, model, train_exps, obs, est, run)
     start = est.start if isinstance(est, EKFResume) else None
     _on_cpu(obs, "the single filter")
-    more = start_substeps(cfg, model, train_exps, obs.say)
+    start_substeps(cfg, model, train_exps, obs.say)
     result = identify_ekf(
         model, train_exps, cfg.estimator.ekf_tuning(), callback=obs.callbacks, start=start
     )
-    return _kept(cfg, result, obs, sum(r.seconds for r in result.history), more)
+    return _kept(cfg, result, obs, sum(r.seconds for r in result.history), {})
 
 
 def _kept(
     cfg: Config, result: EKFResult, obs: _Watch, seconds: float, more: dict[str, Any]
 ) -> _Outcome:
-    """The pass a filter's (or the kept member's) `result` keeps (`kept_pass`), its estimator
-    state, and the run's extra metrics (`more` and the filter's samples per second); the
-    observers see it (`on_estimate`) before the run's σ are computed."""
+    """The pass a filter's (or the kept member's) `result` keeps (`kept_pass`), its state, and
+    the run's extra metrics; the observers see it (`on_estimate`) before the σ are computed."""
     kept, extra = kept_pass(
         result, obs.choosing, scoring_engine(cfg), cfg.estimator.tolerance,
         identification=obs.identification,
         held_out=bool(obs.reported) and "ensemble" not in more,
     )  # fmt: skip
     extra["samples_per_second"] = sum(r.samples for r in result.history) / max(seconds, 1e-9)
-    # "auto" sub-steps: the count the filter's last pass ran (the start's was said)
-    extra.update(more, **({"substeps": result.substeps} if "substeps" in more else {}))
+    extra.update(more)
+    if cfg.estimator.substeps == "auto":  # the count the filter's last pass ran
+        extra["substeps"] = result.substeps
     state, best = kept_payload(kept, extra), extra.get("best_pass")
     scores, history = obs.scores.scores_at(best) or {}, state.get("history", ())
     obs.callbacks.on_estimate(
@@ -157,7 +157,7 @@ def _run_ensemble(
         f"  ensemble of {spec.size} filters ({starts} × Q ×{_scales(spec.q_scales)} × "
         f"R ×{_scales(spec.r_scales)}), one batch; estimator.ensemble = 0 runs one filter"
     )
-    substeps = start_substeps(cfg, model, train_exps, obs.say)
+    start_substeps(cfg, model, train_exps, obs.say)
     ens = identify_ekf_ensemble(
         model,
         train_exps,
@@ -168,7 +168,8 @@ def _run_ensemble(
         start=est.state if isinstance(est, EnsembleResume) else None,
         device=obs.device,
     )
-    held_out = {**member_held_out(model, ens, obs.reported, cfg), **substeps}  # members' FITs
+    # under select = "identification", every member's validation FIT: reported, not chosen by
+    held_out = member_held_out(model, ens, obs.reported, cfg)
     summary = ens.summary()
     (run / "ensemble.json").write_text(
         json.dumps({"summary": summary, "members": [m.to_dict() for m in ens.members]}, indent=2)
